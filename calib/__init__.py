@@ -1,0 +1,18 @@
+"""Cameras: calibration from board footage, camera files, and differentiable projection.
+
+The one place where cameras, their files and their conventions live (conventions are stated in
+:mod:`calib.camera` and :mod:`calib.projection`). Modules, one concept each:
+
+- :mod:`calib.camera`      the frozen :class:`~calib.camera.Camera` value, resize/crop, default guess
+- :mod:`calib.camera_io`   camera JSON and OpenCV YAML/XML files
+- :mod:`calib.projection`  torch/kornia projection and undistortion (what the fit calls)
+- :mod:`calib.board`       the ``--board SPEC`` grammar
+- :mod:`calib.detect`      board detection through OpenCV
+- :mod:`calib.frames`      reading a video or an image folder
+- :mod:`calib.views`       choosing views (blur, duplicates, coverage, tilt, cap)
+- :mod:`calib.calibrate`   ``cv2.calibrateCameraExtended`` with outlier rejection
+- :mod:`calib.plots`       the PNG figure
+- :mod:`calib.pipeline`    the ``capture calibrate`` stage; :mod:`calib.cli` its options
+
+Importing the package is cheap (no torch, OpenCV or matplotlib); import the modules you need.
+"""

@@ -1,0 +1,132 @@
+"""``capture actor train | list | show``: learn actors and inspect them."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from capture.actor_package import actor_dir, list_actors, read_metadata
+from capture.errors import CaptureError
+
+actor_app = typer.Typer(help="Learn actors from registered blendshape meshes and inspect them.",
+                        no_args_is_help=True)
+
+
+def _parse_plane(spec: Optional[str]):
+    if spec is None:
+        return None
+    try:
+        values = tuple(float(v) for v in spec.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4:
+        raise CaptureError(f"--symmetry-plane '{spec}' must be four numbers nx,ny,nz,offset_mm "
+                           f"(the plane of points x with x . n = offset)")
+    return values
+
+
+@actor_app.command("train")
+def train_command(
+    actor: str = typer.Argument(..., help="Actor name (stored under $CAPTURE_ACTORS or ./actors) or a folder path."),
+    shapes: Optional[Path] = typer.Option(None, "--shapes", help="Folder of registered meshes (OBJ/PLY), one topology; file stem = shape name."),
+    sample: bool = typer.Option(False, "--sample", help="Train on the bundled sample actor (ICT FaceKit identity, fitted skull and jaw)."),
+    neutral: Optional[str] = typer.Option(None, help="Name (file stem) of the neutral shape [default: neutral]."),
+    skull: Optional[Path] = typer.Option(None, help="Skull (with maxilla) mesh fitted to the neutral, same units as the shapes unless --bone-units."),
+    jaw: Optional[Path] = typer.Option(None, help="Jaw (mandible) mesh fitted to the neutral."),
+    units: str = typer.Option("mm", help="Units of the shape files: mm, cm, m or in."),
+    bone_units: Optional[str] = typer.Option(None, help="Units of the bone files [default: --units]."),
+    preset: str = typer.Option("default", help="Training preset: 'default' (the project's) or 'paper' (the paper's settings)."),
+    iterations: Optional[int] = typer.Option(None, help="Adam iterations [preset]."),
+    lr: Optional[float] = typer.Option(None, help="Adam learning rate [preset]."),
+    width: Optional[int] = typer.Option(None, help="SIREN hidden width [preset; the paper uses 256]."),
+    depth: Optional[int] = typer.Option(None, help="Number of SIREN sine layers [preset]."),
+    points_per_step: Optional[int] = typer.Option(None, help="Template points per step, 0 = all [preset]."),
+    seed: Optional[int] = typer.Option(None, help="Random seed [preset]."),
+    symmetry_plane: Optional[str] = typer.Option(None, help="Override the estimated symmetry plane: nx,ny,nz,offset_mm."),
+    forehead: Optional[Path] = typer.Option(None, help="File of forehead vertex indices (JSON list or integers) overriding the automatic region."),
+    trusted: Optional[Path] = typer.Option(None, help="File of vertex indices where skin-to-bone constraints are trusted [default: all]."),
+    device: str = typer.Option("cpu", help="Torch device, e.g. cpu or cuda."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing actor or an unfinished training with other settings."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+) -> None:
+    """Learn actor A from registered blendshape meshes (neutral + expressions); resumes if interrupted."""
+    from capture.actor_train import TrainOptions, TrainingProgress, train_actor
+
+    if sample:
+        from capture.sample_data import sample_bones, sample_shapes_dir
+
+        if shapes is not None or skull is not None or jaw is not None:
+            raise CaptureError("--sample brings its own shapes and bones: drop --shapes, --skull and --jaw")
+        shapes = sample_shapes_dir()
+        skull, jaw = sample_bones()
+        units = "mm"
+    if shapes is None:
+        raise CaptureError("give the registered meshes with --shapes DIR (or --sample for the bundled actor)")
+
+    options = TrainOptions(
+        actor=actor, shapes=shapes, neutral=neutral, skull=skull, jaw=jaw, units=units, bone_units=bone_units,
+        preset=preset, overrides=dict(iterations=iterations, lr=lr, width=width, depth=depth,
+                                      points_per_step=points_per_step, seed=seed),
+        symmetry_plane=_parse_plane(symmetry_plane), forehead=forehead, trusted=trusted, device=device,
+        overwrite=overwrite)
+    console = Console(stderr=True)
+    path = train_actor(options, TrainingProgress(enabled=progress), report=lambda m: console.print(m, highlight=False))
+    _show(str(path), Console())
+
+
+@actor_app.command("list")
+def list_command() -> None:
+    """List the actors under $CAPTURE_ACTORS (or ./actors)."""
+    actors = list_actors()
+    console = Console()
+    if not actors:
+        console.print("no actors found (train one with 'capture actor train A --shapes DIR')")
+        return
+    table = Table("actor", "shapes", "vertices", "mean error mm", "max error mm", "trained", "path")
+    for a in actors:
+        q = a.get("quality", {})
+        table.add_row(a.get("name", "?"), str(len(a.get("shape_names", []))) if "shape_names" in a else "-",
+                      str(a.get("n_vertices", "-")), f"{q['mean_mm']:.3f}" if "mean_mm" in q else "-",
+                      f"{q['max_mm']:.3f}" if "max_mm" in q else "-", a.get("created", a.get("status", "-")), a["path"])
+    console.print(table)
+
+
+@actor_app.command("show")
+def show_command(
+    actor: str = typer.Argument(..., help="Actor name or folder."),
+    as_json: bool = typer.Option(False, "--json", help="Print the actor's metadata as JSON."),
+) -> None:
+    """One actor's metadata and quality figures."""
+    if as_json:
+        meta = read_metadata(actor)
+        meta.get("forehead", {}).pop("vertices", None)
+        print(json.dumps(meta, indent=2))
+        return
+    _show(actor, Console())
+
+
+def _show(actor, console: Console) -> None:
+    meta = read_metadata(str(actor))
+    q, tr, con = meta["quality"], meta["training"], meta["anatomy_constraints"]
+    console.print(f"[bold]{meta['name']}[/]  {meta['n_vertices']} vertices, {len(meta['shape_names'])} shapes "
+                  f"(neutral '{meta['neutral']}'), units {meta['units']}, {actor_dir(str(actor))}")
+    table = Table("shape", "mean error mm", "max error mm", title="training error per shape")
+    for name, e in q["per_shape"].items():
+        table.add_row(name, f"{e['mean_mm']:.4f}", f"{e['max_mm']:.3f}")
+    table.add_row("[bold]all[/]", f"[bold]{q['mean_mm']:.4f}[/]", f"[bold]{q['max_mm']:.3f}[/]")
+    console.print(table)
+    a = q["anatomy"]
+    est = " (ESTIMATED bones)" if con.get("bones_estimated") else ""
+    console.print(f"anatomy constraints{est}: {con['count']} points, coverage {100 * con['coverage']:.1f} %, "
+                  f"thickness median {con['thickness_mm']['median']:.1f} mm")
+    console.print(f"anatomy residuals on constrained points: bone {a['bone_mm']:.3f} mm, thickness "
+                  f"{a['thickness_mm']:.3f} mm, normal {a['normal_deg']:.2f} deg")
+    console.print(f"symmetry residual of B: {q['symmetry_mm']:.3f} mm; forehead skinning weight |k|: {q['forehead_k']:.4f}")
+    s = tr["settings"]
+    console.print(f"training: preset {tr['preset']}, {tr['iterations']} iterations, width {s['width']}, depth {s['depth']}, "
+                  f"lr {s['lr']}, {tr['train_seconds'] / 60:.1f} min on {tr['device']}")

@@ -1,0 +1,345 @@
+"""The actor-training stage: registered shapes (+ bones) in, actor package out, resumable.
+
+``train_actor(options)`` loads and checks the shapes, finds the face frame and forehead, computes
+the sparse anatomical constraints against the given bones (or an estimated bone surface), trains
+the model with progress, checkpoints to ``A/training/`` every ``checkpoint_seconds`` and on
+interrupt (Ctrl-C or SIGTERM), and writes the package. Running the same command again resumes an
+unfinished training; a finished actor is only replaced with ``overwrite``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import hashlib
+import json
+import platform
+import shutil
+import signal
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+import torch
+import trimesh
+
+import capture
+from capture.actor_package import TRAINING_DIR, actor_dir, is_actor, remove_actor, save_actor
+from capture.atomic import atomic_path, write_bytes, write_json
+from capture.errors import CaptureError, Interrupted
+from capture.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
+from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
+from models.bone_estimate import estimate_bone_surface
+from models.face_frame import FaceFrame, estimate_face_frame, estimate_jaw_pivot, forehead_region
+from models.rotation import rot6d_to_matrix
+from models.train import PRESETS, ActorTrainer, Evaluation, TrainingData, TrainSettings, model_config_for
+
+
+@dataclass
+class TrainOptions:
+    """Inputs of ``capture actor train`` (resolved, plain data)."""
+
+    actor: str
+    shapes: Path
+    neutral: str | None = None
+    skull: Path | None = None
+    jaw: Path | None = None
+    units: str = "mm"
+    bone_units: str | None = None        # default: same as ``units``
+    preset: str = "default"
+    overrides: dict = field(default_factory=dict)   # TrainSettings fields changed on the command line
+    symmetry_plane: tuple[float, float, float, float] | None = None  # (nx, ny, nz, offset_mm)
+    forehead: Path | None = None         # vertex index list
+    trusted: Path | None = None          # vertex index list for the constraints
+    device: str = "cpu"
+    overwrite: bool = False
+    checkpoint_seconds: float = 60.0
+    eval_every: int = 50
+
+
+def resolve_settings(preset: str, overrides: dict) -> TrainSettings:
+    """The preset with command-line overrides applied."""
+    if preset not in PRESETS:
+        raise CaptureError(f"unknown preset '{preset}': use one of {', '.join(PRESETS)}")
+    base = PRESETS[preset]
+    unknown = set(overrides) - set(TrainSettings.__dataclass_fields__)
+    if unknown:
+        raise CaptureError(f"unknown training setting(s): {', '.join(sorted(unknown))}")
+    settings = replace(base, **{k: v for k, v in overrides.items() if v is not None})
+    if settings.iterations < 1 or settings.lr <= 0 or settings.width < 1 or settings.depth < 1:
+        raise CaptureError("iterations, lr, width and depth must be positive")
+    return settings
+
+
+def read_vertex_list(path: Path, n_vertices: int, what: str) -> np.ndarray:
+    """A vertex selection file: JSON list of indices, or whitespace/comma separated integers."""
+    if not path.is_file():
+        raise CaptureError(f"{what} file not found: {path}")
+    text = path.read_text()
+    try:
+        values = json.loads(text) if text.lstrip().startswith("[") else [int(v) for v in text.replace(",", " ").split()]
+        idx = np.asarray(values, dtype=np.int64).reshape(-1)
+    except (ValueError, TypeError, json.JSONDecodeError):
+        raise CaptureError(f"{what} file {path} must hold vertex indices (a JSON list or integers separated by spaces)") from None
+    if idx.size == 0 or idx.min() < 0 or idx.max() >= n_vertices:
+        raise CaptureError(f"{what} file {path}: indices must lie in 0..{n_vertices - 1} (found "
+                           f"{'none' if idx.size == 0 else f'{idx.min()}..{idx.max()}'})")
+    return np.unique(idx)
+
+
+def _fingerprint(files: list[Path], settings: dict) -> str:
+    h = hashlib.sha256()
+    for f in files:
+        h.update(str(f.name).encode())
+        h.update(f.read_bytes())
+    h.update(json.dumps(settings, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Treat SIGTERM like Ctrl-C while training, so the checkpoint is saved before exiting."""
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _constraint_template_points(con: AnatomyConstraints, template: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    tri = template[faces[con.face_index]]                       # (M, 3, 3)
+    return np.einsum("mk,mkc->mc", con.barycentric, tri)
+
+
+def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], None]):
+    """Face frame, forehead, bones and constraints for ``shapes`` -> (TrainingData, extras dict)."""
+    neutral = shapes.neutral
+    V = len(neutral.vertices)
+    frame = estimate_face_frame(neutral.vertices, neutral.faces)
+    frame_source = "estimated from the neutral (mirror ICP)"
+    if options.symmetry_plane is not None:
+        nx, ny, nz, off = options.symmetry_plane
+        n = np.array([nx, ny, nz], dtype=np.float64)
+        if not np.isfinite(n).all() or np.linalg.norm(n) < 1e-9:
+            raise CaptureError("--symmetry-plane needs a non-zero normal: nx,ny,nz,offset_mm")
+        norm = np.linalg.norm(n)
+        frame = replace(frame, symmetry_normal=n / norm, symmetry_offset=float(off) / norm)
+        frame_source = "given by --symmetry-plane"
+    if options.forehead is not None:
+        fore_idx = read_vertex_list(options.forehead, V, "forehead")
+        fore_source = f"file {options.forehead}"
+    else:
+        fore_idx = np.flatnonzero(forehead_region(neutral.vertices, neutral.faces, frame))
+        fore_source = "automatic (upper face band, see models.face_frame)"
+    if options.trusted is None:
+        trusted = default_trusted_region(neutral, frame)
+        trusted_source = "automatic (vertices at least 10 mm from an open border)"
+    else:
+        trusted_source = f"file {options.trusted}"
+        trusted = np.zeros(V, dtype=bool)
+        trusted[read_vertex_list(options.trusted, V, "trusted region")] = True
+
+    bone_scale = units_scale(options.bone_units or options.units)
+    bones: dict[str, trimesh.Trimesh] = {}
+    if options.skull is not None:
+        bones["skull"] = load_mesh(options.skull, bone_scale, "skull")
+    if options.jaw is not None:
+        bones["jaw"] = load_mesh(options.jaw, bone_scale, "jaw")
+    estimated = not bones
+    if estimated:
+        bones["estimated"] = estimate_bone_surface(neutral, frame)
+        report("no --skull/--jaw given: using an ESTIMATED bone surface (inward offset of the neutral by "
+               "typical soft-tissue thickness); the anatomy is an estimate")
+    con = compute_anatomy_constraints(neutral, list(bones.values()), trusted=trusted)
+    pivot = estimate_jaw_pivot(frame, neutral.vertices, bones.get("jaw"))
+    cpts = _constraint_template_points(con, neutral.vertices, neutral.faces)
+    on_jaw = (con.bone_label == list(bones).index("jaw")) if "jaw" in bones else np.zeros(len(cpts), dtype=bool)
+    f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)
+    data = TrainingData(
+        template=f32(neutral.vertices), shapes=f32(shapes.vertices), constraint_points=f32(cpts),
+        bone_target=f32(con.bone_point), thickness_target=f32(con.thickness), normal_target=f32(con.bone_normal),
+        forehead_points=f32(neutral.vertices[fore_idx]),
+        jaw_points=f32(cpts[on_jaw]),
+        jaw_positions=f32(np.einsum("mk,nmkc->nmc", con.barycentric[on_jaw],
+                                    shapes.vertices[:, neutral.faces[con.face_index[on_jaw]]])),
+        symmetry_normal=f32(frame.symmetry_normal),
+        symmetry_offset=float(frame.symmetry_offset),
+    )
+    extras = dict(frame=frame, frame_source=frame_source, forehead_idx=fore_idx, forehead_source=fore_source,
+                  bones=bones, bones_estimated=estimated, constraints=con, jaw_pivot=pivot,
+                  trusted_source=trusted_source)
+    return data, extras
+
+
+def _evaluation_metadata(ev: Evaluation, names: list[str]) -> dict:
+    return {
+        "per_shape": {n: {"mean_mm": m, "max_mm": x} for n, m, x in zip(names, ev.shape_mean_mm, ev.shape_max_mm)},
+        "mean_mm": ev.mean_mm, "max_mm": max(ev.shape_max_mm),
+        "anatomy": {"bone_mm": ev.bone_mm, "thickness_mm": ev.thickness_mm, "normal_deg": ev.normal_deg},
+        "symmetry_mm": ev.symmetry_mm, "forehead_k": ev.forehead_k,
+    }
+
+
+def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = None,
+                report: Callable[[str], None] = print) -> Path:
+    """Train (or resume training) actor ``options.actor``; returns the package directory."""
+    out = actor_dir(options.actor)
+    if is_actor(out):
+        if not options.overwrite:
+            raise CaptureError(f"actor '{options.actor}' already exists at {out}; pass --overwrite to retrain it")
+        remove_actor(out)
+    settings = resolve_settings(options.preset, options.overrides)
+    shapes = load_shape_dir(options.shapes, options.neutral, options.units)
+    if options.device != "cpu" and not torch.cuda.is_available() and options.device.startswith("cuda"):
+        raise CaptureError(f"device '{options.device}' is not available on this machine; use --device cpu")
+
+    inputs = list(shapes.files)
+    for what, p in (("skull", options.skull), ("jaw", options.jaw), ("forehead", options.forehead),
+                    ("trusted region", options.trusted)):
+        if p is not None:
+            if not Path(p).is_file():
+                raise CaptureError(f"{what} file not found: {p}")
+            inputs.append(Path(p))
+    resolved = {
+        "preset": options.preset, "settings": settings.to_dict(), "units": options.units,
+        "bone_units": options.bone_units or options.units, "neutral": shapes.names[0],
+        "symmetry_plane": options.symmetry_plane,
+    }
+    fingerprint = _fingerprint(inputs, resolved)
+    train_dir = out / TRAINING_DIR
+    ckpt_path = train_dir / "checkpoint.pt"
+    state = None
+    if ckpt_path.is_file():
+        state = torch.load(ckpt_path, map_location="cpu", weights_only=True)
+        if state.get("fingerprint") != fingerprint:
+            if not options.overwrite:
+                raise CaptureError(f"actor '{options.actor}' has an unfinished training with other shapes or settings "
+                                   f"at {out}; rerun that command to resume it, or pass --overwrite to start over")
+            remove_actor(out)
+            state = None
+    elif out.exists() and any(out.iterdir()) and not options.overwrite:
+        raise CaptureError(f"{out} exists and is not an actor; choose another name or pass --overwrite")
+
+    t_prep = time.perf_counter()
+    data, extras = prepare(options, shapes, report)
+    con: AnatomyConstraints = extras["constraints"]
+    report(f"anatomy constraints: {len(con.thickness)} points ({100 * con.coverage:.1f} % of {con.n_vertices} "
+           f"vertices), thickness median {np.median(con.thickness):.1f} mm")
+    prep_seconds = time.perf_counter() - t_prep
+
+    config = model_config_for(data, settings, extras["jaw_pivot"])
+    trainer = ActorTrainer(data, settings, config, device=options.device)
+    elapsed_before = 0.0
+    if state is not None:
+        trainer.load_state_dict(state["trainer"])
+        elapsed_before = float(state.get("train_seconds", 0.0))
+        report(f"resuming training of '{options.actor}' at iteration {trainer.iteration} of {settings.iterations}")
+    train_dir.mkdir(parents=True, exist_ok=True)
+    write_json(train_dir / "settings.json", {**resolved, "fingerprint": fingerprint,
+                                             "inputs": [str(p) for p in inputs]})
+
+    def save_checkpoint(seconds: float) -> None:
+        with atomic_path(ckpt_path) as tmp:
+            torch.save({"fingerprint": fingerprint, "trainer": trainer.state_dict(), "train_seconds": seconds}, tmp)
+
+    log_path = train_dir / "log.jsonl"
+    t0 = time.perf_counter()
+    last_ckpt = t0
+    ev = None
+    progress = progress or TrainingProgress(enabled=False)
+    with _sigterm_as_interrupt(), progress.session(settings.iterations, trainer.iteration) as update:
+        try:
+            while trainer.iteration < settings.iterations:
+                terms = trainer.step()
+                if not np.isfinite(terms["total"]):
+                    raise CaptureError(f"training diverged at iteration {trainer.iteration} (loss is not finite); "
+                                       f"lower --lr or use --preset default")
+                if trainer.iteration % options.eval_every == 0 or trainer.iteration == settings.iterations:
+                    ev = trainer.evaluate()
+                    with open(log_path, "a") as fh:
+                        fh.write(json.dumps({"iteration": trainer.iteration, "seconds": elapsed_before + time.perf_counter() - t0,
+                                             "mean_mm": ev.mean_mm, **terms}) + "\n")
+                update(trainer.iteration, terms["total"], ev.mean_mm if ev else float("nan"))
+                now = time.perf_counter()
+                if now - last_ckpt > options.checkpoint_seconds:
+                    save_checkpoint(elapsed_before + now - t0)
+                    last_ckpt = now
+        except KeyboardInterrupt:
+            save_checkpoint(elapsed_before + time.perf_counter() - t0)
+            raise Interrupted(f"training of '{options.actor}' interrupted at iteration {trainer.iteration}; "
+                              f"checkpoint saved in {train_dir}: run the same command to resume") from None
+    train_seconds = elapsed_before + time.perf_counter() - t0
+    ev = trainer.evaluate()
+
+    R = rot6d_to_matrix(trainer.jaw_rot6d.detach()).cpu().numpy()
+    t = trainer.jaw_t.detach().cpu().numpy()
+    frame: FaceFrame = extras["frame"]
+    metadata = {
+        "name": out.name,
+        "units": "mm",
+        "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "software": {"capture": capture.__version__, "torch": torch.__version__, "python": platform.python_version()},
+        "shape_names": shapes.names, "neutral": shapes.names[0],
+        "n_vertices": int(shapes.vertices.shape[1]), "n_faces": int(len(shapes.faces)),
+        "source": {"shapes": str(options.shapes), "files": [str(p) for p in shapes.files],
+                   "units": options.units, "skull": str(options.skull) if options.skull else None,
+                   "jaw": str(options.jaw) if options.jaw else None, "bones_estimated": extras["bones_estimated"]},
+        "model": config.to_dict(),
+        "training": {"preset": options.preset, "settings": settings.to_dict(), "iterations": trainer.iteration,
+                     "train_seconds": train_seconds, "prepare_seconds": prep_seconds, "device": options.device,
+                     "torch_threads": torch.get_num_threads()},
+        "quality": _evaluation_metadata(ev, shapes.names),
+        "anatomy_constraints": {"count": int(len(con.thickness)), "coverage": float(con.coverage),
+                                "candidates": int(con.n_candidates),
+                                "thickness_mm": {"median": float(np.median(con.thickness)),
+                                                 "min": float(con.thickness.min()), "max": float(con.thickness.max())},
+                                "bones_estimated": extras["bones_estimated"],
+                                "trusted_region": extras["trusted_source"]},
+        "face_frame": {**frame.to_dict(), "source": extras["frame_source"]},
+        "forehead": {"n_vertices": int(len(extras["forehead_idx"])), "source": extras["forehead_source"],
+                     "vertices": [int(i) for i in extras["forehead_idx"]]},
+        "jaw_pivot_mm": [float(v) for v in extras["jaw_pivot"]],
+        "jaw_transforms": {name: {"R": R[i].tolist(), "t_mm": t[i].tolist()} for i, name in enumerate(shapes.names[1:])},
+        "landmark_embeddings": {},
+    }
+    save_actor(out, metadata, trainer.model, trainer.jaw_rot6d, trainer.jaw_t, shapes.neutral,
+               extras["bones"], con.to_arrays())
+    if log_path.exists():
+        write_bytes(out / "training_log.jsonl", log_path.read_bytes())
+    shutil.rmtree(train_dir, ignore_errors=True)
+    return out
+
+
+class TrainingProgress:
+    """A rich progress bar: iteration, loss, current mean error (mm) and time left."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+
+    @contextlib.contextmanager
+    def session(self, total: int, start: int):
+        if not self.enabled:
+            yield lambda *a: None
+            return
+        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                   TimeRemainingColumn)
+
+        columns = [TextColumn("training"), BarColumn(), MofNCompleteColumn(),
+                   TextColumn("loss {task.fields[loss]:.3e}  error {task.fields[err]:.3f} mm"),
+                   TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn()]
+        with Progress(*columns, transient=False) as bar:
+            task = bar.add_task("train", total=total, completed=start, loss=float("nan"), err=float("nan"))
+
+            def update(iteration: int, loss: float, err: float) -> None:
+                bar.update(task, completed=iteration, loss=loss, err=err)
+
+            yield update

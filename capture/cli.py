@@ -1,0 +1,51 @@
+"""The ``capture`` command line: one program, one sub-command per job.
+
+Each sub-command lives in the module of its concept (``capture.actor_cli``, ``calib.cli``) and is
+registered here. :func:`main` turns :class:`~capture.errors.CaptureError` into a one-line message
+and a non-zero exit status, and an interrupt (Ctrl-C) into exit status 130 with a hint to resume.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from calib.cli import calibrate_command
+from capture.actor_cli import actor_app
+from capture.errors import CaptureError
+
+app = typer.Typer(
+    name="capture",
+    help="Monocular video face capture with anatomically constrained implicit face models (AIM).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+app.add_typer(actor_app, name="actor")
+app.command("calibrate")(calibrate_command)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status (0 success, 2 user error, 130 interrupted)."""
+    try:
+        app(args=argv, prog_name="capture", standalone_mode=True)
+    except CaptureError as exc:
+        print(f"capture: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("capture: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    except SystemExit as exc:  # click's standalone mode ends every command with sys.exit
+        code = exc.code
+        return code if isinstance(code, int) else (0 if code is None else 1)
+    return 0
+
+
+def run() -> None:
+    """Console-script entry point."""
+    sys.exit(main())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    run()

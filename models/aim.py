@@ -1,0 +1,158 @@
+"""The anatomical implicit face model (AIM): five SIREN networks over template points.
+
+For a template point c (mm, on the template mesh C) the model predicts
+
+* the bone (anatomy) point   ``b = B(c)``        (mm)
+* the soft-tissue thickness  ``d = D(c)``        (mm)
+* the bone normal            ``n = N(c)``        (unit vector)
+* the jaw skinning weight    ``k = K(c)``
+* the expression basis       ``E(c)``            ((N-1) x 3, mm)
+
+and builds the neutral skin ``s0 = b + d n`` and training shape i as
+``s_i = LBS(s0, T_b^i, k) + E(c)[i]`` (paper, eqs. 1-9).
+
+Scaling (an implementation detail that keeps every network's output near unit size; it changes
+no function the model can represent): inputs are normalised to ``(c - center) / scale`` with the
+template's bounding box, so they lie in [-1, 1]; B predicts the bone point as an offset from c,
+``b = c + bone_offset_mm * B(.)``; D and E are scaled by ``thickness_mm`` and ``expression_mm``;
+N is normalised to unit length. At initialisation b is close to c, d and E close to zero, so the
+model starts near the template.
+
+The model is stateless with respect to shapes and frames: per-shape jaw transforms are owned by
+the trainer, per-frame parameters by the fitter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import torch
+from torch import nn
+
+from models.checks import check_shape
+from models.lbs import lbs_jaw
+from models.rotation import rot6d_to_matrix
+from models.siren import Siren
+
+
+@dataclass(frozen=True)
+class AIMConfig:
+    """Architecture and normalisation of an actor model (saved in the actor package)."""
+
+    n_expressions: int
+    """N - 1: number of non-neutral training shapes (columns of the expression basis)."""
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Centre of the template's bounding box (mm)."""
+    scale: float = 100.0
+    """Half the largest side of the template's bounding box (mm)."""
+    jaw_pivot: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Centre of jaw rotation (mm), near the temporomandibular joint."""
+    width: int = 256
+    depth: int = 3
+    first_omega_0: float = 30.0
+    hidden_omega_0: float = 1.0
+    bone_offset_mm: float = 10.0
+    thickness_mm: float = 10.0
+    expression_mm: float = 10.0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "AIMConfig":
+        unknown = set(d) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"unknown AIMConfig fields: {sorted(unknown)}")
+        d = dict(d)
+        for key in ("center", "jaw_pivot"):
+            if key in d:
+                d[key] = tuple(float(v) for v in d[key])
+        return cls(**d)
+
+
+@dataclass
+class Anatomy:
+    """Model outputs at P template points (all tensors share the batch shape ``*``)."""
+
+    bone: torch.Tensor          # (*, P, 3) mm
+    thickness: torch.Tensor     # (*, P) mm
+    normal: torch.Tensor        # (*, P, 3) unit
+    neutral: torch.Tensor       # (*, P, 3) mm, s0 = b + d n
+    skin_weight: torch.Tensor   # (*, P) jaw skinning weight k
+    expressions: torch.Tensor   # (*, P, N-1, 3) mm, the expression basis E(c)
+
+    def slice(self, start: int, stop: int) -> "Anatomy":
+        """The outputs of points ``start:stop`` (flat evaluation, batch shape ``()``)."""
+        return Anatomy(*(getattr(self, f)[start:stop] for f in self.__dataclass_fields__))
+
+
+class AnatomicalFaceModel(nn.Module):
+    """The ensemble of SIRENs B, D, N, K, E (see the module docstring)."""
+
+    def __init__(self, config: AIMConfig):
+        super().__init__()
+        self.config = config
+        siren = dict(width=config.width, depth=config.depth, first_omega_0=config.first_omega_0,
+                     hidden_omega_0=config.hidden_omega_0)
+        self.B = Siren(3, 3, output_scale=0.1, **siren)
+        self.D = Siren(3, 1, output_scale=0.1, **siren)
+        self.N = Siren(3, 3, **siren)
+        self.K = Siren(3, 1, output_scale=0.1, **siren)
+        self.E = Siren(3, 3 * config.n_expressions, output_scale=0.1, **siren)
+        self.register_buffer("center", torch.tensor(config.center, dtype=torch.float32))
+        self.register_buffer("jaw_pivot", torch.tensor(config.jaw_pivot, dtype=torch.float32))
+
+    def normalize(self, c: torch.Tensor) -> torch.Tensor:
+        """Template points (mm) to network inputs in about [-1, 1]."""
+        return (c - self.center) / self.config.scale
+
+    def bone(self, c: torch.Tensor) -> torch.Tensor:
+        """Bone points ``(*, P, 3)`` mm at template points ``(*, P, 3)``."""
+        return c + self.config.bone_offset_mm * self.B(self.normalize(c))
+
+    def forward(self, c: torch.Tensor) -> Anatomy:
+        """Evaluate all five networks at template points ``c`` ``(*, P, 3)`` mm."""
+        check_shape(c, "*,P,3", "template points")
+        x = self.normalize(c)
+        bone = c + self.config.bone_offset_mm * self.B(x)
+        thickness = self.config.thickness_mm * self.D(x).squeeze(-1)
+        normal = torch.nn.functional.normalize(self.N(x), dim=-1, eps=1e-8)
+        neutral = bone + thickness.unsqueeze(-1) * normal
+        k = self.K(x).squeeze(-1)
+        e = self.config.expression_mm * self.E(x)
+        e = e.reshape(*e.shape[:-1], self.config.n_expressions, 3)
+        return Anatomy(bone, thickness, normal, neutral, k, e)
+
+    def shape(self, anatomy: Anatomy, jaw_rot6d: torch.Tensor, jaw_t: torch.Tensor,
+              coefficients: torch.Tensor) -> torch.Tensor:
+        """Skin of an expression: ``LBS(s0, T_b, k) + sum_i w_i E_i``.
+
+        Args:
+            anatomy: outputs at P points (batch shape ``()``).
+            jaw_rot6d: ``(S, 6)`` jaw rotations; jaw_t: ``(S, 3)`` translations (mm).
+            coefficients: ``(S, N-1)`` global or ``(S, P, N-1)`` per-point blend weights w.
+
+        Returns:
+            ``(S, P, 3)`` skin points in the head (skull) frame, mm.
+        """
+        R = rot6d_to_matrix(jaw_rot6d)
+        skinned = lbs_jaw(anatomy.neutral.expand(R.shape[0], -1, -1),
+                          anatomy.skin_weight.expand(R.shape[0], -1), R, jaw_t, self.jaw_pivot)
+        if coefficients.dim() == 2:
+            offsets = torch.einsum("se,pec->spc", coefficients, anatomy.expressions)
+        else:
+            offsets = torch.einsum("spe,pec->spc", coefficients, anatomy.expressions)
+        return skinned + offsets
+
+    def training_shapes(self, anatomy: Anatomy, jaw_rot6d: torch.Tensor, jaw_t: torch.Tensor) -> torch.Tensor:
+        """All N training shapes ``(N, P, 3)``: the neutral, then shape i = LBS(s0, T_b^i, k) + E_i.
+
+        ``jaw_rot6d (N-1, 6)`` and ``jaw_t (N-1, 3)`` are the learned jaw transforms of the
+        non-neutral shapes; the neutral's jaw is at rest by definition.
+        """
+        R = rot6d_to_matrix(jaw_rot6d)
+        n = R.shape[0]
+        skinned = lbs_jaw(anatomy.neutral.expand(n, -1, -1), anatomy.skin_weight.expand(n, -1),
+                          R, jaw_t, self.jaw_pivot)
+        expr = anatomy.expressions.permute(1, 0, 2)  # (N-1, P, 3)
+        return torch.cat([anatomy.neutral.unsqueeze(0), skinned + expr], dim=0)

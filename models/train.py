@@ -1,0 +1,329 @@
+"""Learning an actor: fit the AIM networks and per-shape jaw transforms to registered shapes.
+
+Pure optimisation, no file I/O: :class:`ActorTrainer` takes tensors (:class:`TrainingData`) and
+settings (:class:`TrainSettings`), exposes ``step()``, ``evaluate()`` and a checkpointable
+``state_dict()``; the command line (``capture.actor_train``) owns progress, files and resume.
+
+Presets (:data:`PRESETS`):
+
+* ``paper``: the paper's settings - SIREN omega_0 = 30 in every layer, width 256, Adam lr 2e-3
+  held constant for 1e4 iterations, every point in every step.
+* ``default``: the project's - omega_0 = 30 on the first layer only (stable at lr 2e-3, see
+  :mod:`models.siren`), a cosine learning-rate decay to 1 % of the start (a constant rate keeps
+  the error spiky), and a periodic closed-form solve of the expression network's linear output
+  layer (``expression_solve_every``): with everything else fixed, the skin loss is quadratic in
+  that layer, so its least-squares optimum is one small linear solve (width x width) instead of
+  thousands of Adam steps. Its regularised normal equations use the same skin loss as Adam.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+
+import torch
+
+from models.aim import AIMConfig, AnatomicalFaceModel
+from models.checks import check_shapes
+from models.losses import (LossWeights, anatomy_losses, skin_position_loss, skinning_weight_loss,
+                           symmetry_loss, thickness_regularizer)
+from models.rotation import identity_6d, kabsch, matrix_to_rot6d
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Settings of one actor training (saved in the actor package)."""
+
+    iterations: int = 4000
+    lr: float = 2e-3
+    lr_final_fraction: float = 0.01
+    """Cosine decay of the learning rate to this fraction of ``lr``; 1.0 keeps it constant."""
+    width: int = 256
+    depth: int = 3
+    first_omega_0: float = 30.0
+    hidden_omega_0: float = 1.0
+    points_per_step: int = 0
+    """Template points sampled per step; 0 = all points every step."""
+    expression_solve_every: int = 200
+    """Closed-form solve of E's output layer every this many steps (0 = never, as in the paper)."""
+    expression_solve_ridge: float = 1e-6
+    expression_solve_start: float = 0.25
+    """The first closed-form solve waits for this fraction of the iterations, so that the jaw
+    (LBS) explains the rigid part of the motion before the expression basis absorbs it."""
+    jaw_skinning_prior: float = 1.0
+    """Weight of ``mean (K(c_j) - 1)^2`` on points constrained to the jaw bone: the counterpart of
+    the paper's forehead loss that tells the skinning which points ride on the mandible
+    (0 = off, as in the paper)."""
+    seed: int = 0
+    weights: LossWeights = field(default_factory=LossWeights)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainSettings":
+        d = dict(d)
+        unknown = set(d) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"unknown training settings: {sorted(unknown)}")
+        if isinstance(d.get("weights"), dict):
+            d["weights"] = LossWeights(**d["weights"])
+        return cls(**d)
+
+
+PRESETS: dict[str, TrainSettings] = {
+    "default": TrainSettings(),
+    "paper": TrainSettings(iterations=10_000, lr=2e-3, lr_final_fraction=1.0, width=256, depth=3,
+                           first_omega_0=30.0, hidden_omega_0=30.0, expression_solve_every=0,
+                           jaw_skinning_prior=0.0),
+}
+
+
+@dataclass
+class TrainingData:
+    """Everything an actor learns from, as tensors in millimetres.
+
+    Shapes: V template vertices, N training shapes (neutral first), M constrained points,
+    F forehead points.
+    """
+
+    template: torch.Tensor            # (V, 3) template points c
+    shapes: torch.Tensor              # (N, V, 3) registered shapes, shapes[0] = neutral
+    constraint_points: torch.Tensor   # (M, 3) template points carrying anatomy constraints
+    bone_target: torch.Tensor         # (M, 3)
+    thickness_target: torch.Tensor    # (M,)
+    normal_target: torch.Tensor       # (M, 3)
+    forehead_points: torch.Tensor     # (F, 3) template points where k should be 0
+    jaw_points: torch.Tensor          # (J, 3) template points constrained to the jaw bone (k near 1)
+    jaw_positions: torch.Tensor       # (N, J, 3) where those points are in each training shape
+    symmetry_normal: torch.Tensor     # (3,) unit normal of the symmetry plane
+    symmetry_offset: float            # plane {x : x . n = offset}
+
+    def __post_init__(self):
+        check_shapes({
+            "template": (self.template, "V,3"), "shapes": (self.shapes, "N,V,3"),
+            "constraint_points": (self.constraint_points, "M,3"), "bone_target": (self.bone_target, "M,3"),
+            "thickness_target": (self.thickness_target, "M"), "normal_target": (self.normal_target, "M,3"),
+            "forehead_points": (self.forehead_points, "F,3"), "jaw_points": (self.jaw_points, "J,3"),
+            "jaw_positions": (self.jaw_positions, "N,J,3"),
+            "symmetry_normal": (self.symmetry_normal, "3"),
+        })
+        if self.shapes.shape[0] < 2:
+            raise ValueError("training needs the neutral and at least one expression")
+
+    def reflect(self, x: torch.Tensor) -> torch.Tensor:
+        """Mirror points ``(*, 3)`` about the symmetry plane."""
+        n = self.symmetry_normal
+        return x - 2.0 * ((x @ n) - self.symmetry_offset).unsqueeze(-1) * n
+
+    def to(self, device) -> "TrainingData":
+        moved = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
+        return TrainingData(**moved)
+
+
+@dataclass
+class Evaluation:
+    """Quality figures of the current model (all lengths mm)."""
+
+    shape_mean_mm: list[float]
+    shape_max_mm: list[float]
+    bone_mm: float            # mean |b~ - b| on constrained points
+    thickness_mm: float       # mean |d~ - d| on constrained points
+    normal_deg: float         # mean angle between n~ and n on constrained points
+    symmetry_mm: float        # mean ||B(R(c)) - R(B(c))|| over template points
+    forehead_k: float         # mean |k| on the forehead region
+
+    @property
+    def mean_mm(self) -> float:
+        return float(sum(self.shape_mean_mm) / len(self.shape_mean_mm))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["mean_mm"] = self.mean_mm
+        return d
+
+
+def model_config_for(data: TrainingData, settings: TrainSettings, jaw_pivot) -> AIMConfig:
+    """The model architecture and normalisation for ``data`` under ``settings``."""
+    lo = data.template.min(0).values
+    hi = data.template.max(0).values
+    return AIMConfig(
+        n_expressions=data.shapes.shape[0] - 1,
+        center=tuple(float(v) for v in (lo + hi) / 2),
+        scale=float((hi - lo).max() / 2),
+        jaw_pivot=tuple(float(v) for v in jaw_pivot),
+        width=settings.width, depth=settings.depth,
+        first_omega_0=settings.first_omega_0, hidden_omega_0=settings.hidden_omega_0,
+    )
+
+
+class ActorTrainer:
+    """Owns the model, the per-shape jaw transforms and the optimiser of one actor training."""
+
+    def __init__(self, data: TrainingData, settings: TrainSettings, config: AIMConfig,
+                 device: str | torch.device = "cpu"):
+        self.device = torch.device(device)
+        self.data = data.to(self.device)
+        self.settings = settings
+        torch.manual_seed(settings.seed)
+        self.model = AnatomicalFaceModel(config).to(self.device)
+        n_expr = config.n_expressions
+        self.jaw_rot6d = torch.nn.Parameter(identity_6d(n_expr, device=self.device))
+        # The jaw translation is optimised in units of ``length_unit_mm`` so that Adam's steps
+        # (about lr per iteration) move it as fast as the rotation, not 10x slower in mm.
+        self.jaw_t_units = torch.nn.Parameter(torch.zeros(n_expr, 3, device=self.device))
+        self.optimizer = torch.optim.Adam(list(self.model.parameters()) + [self.jaw_rot6d, self.jaw_t_units],
+                                          lr=settings.lr)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self._lr_factor)
+        self._init_jaw()
+        self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
+        self.iteration = 0
+
+    @torch.no_grad()
+    def _init_jaw(self) -> None:
+        """Start each shape's jaw transform at the rigid motion of its jaw-constrained skin points.
+
+        A least-squares rigid fit (Kabsch) of where the points over the mandible went in shape i
+        gives the jaw's rotation about the pivot and its translation; the networks then learn the
+        rest. Without at least 3 such points the jaw starts at rest (the paper's initialisation).
+        """
+        d = self.data
+        if d.jaw_points.shape[0] < 3:
+            return
+        rest = d.jaw_positions[0].expand_as(d.jaw_positions[1:])
+        R, t0 = kabsch(rest, d.jaw_positions[1:])
+        pivot = self.model.jaw_pivot
+        t = t0 + (R @ pivot) - pivot
+        self.jaw_rot6d.copy_(matrix_to_rot6d(R))
+        self.jaw_t_units.copy_(t / self.settings.weights.length_unit_mm)
+
+    @property
+    def jaw_t(self) -> torch.Tensor:
+        """Jaw translations ``(N-1, 3)`` in mm."""
+        return self.jaw_t_units * self.settings.weights.length_unit_mm
+
+    def jaw_translation(self) -> torch.Tensor:
+        return self.jaw_t
+
+    def _lr_factor(self, it: int) -> float:
+        f = self.settings.lr_final_fraction
+        if f >= 1.0:
+            return 1.0
+        progress = min(it / max(self.settings.iterations, 1), 1.0)
+        return f + (1 - f) * 0.5 * (1 + math.cos(math.pi * progress))
+
+    def _sample(self) -> torch.Tensor | None:
+        n = self.data.template.shape[0]
+        p = self.settings.points_per_step
+        if p <= 0 or p >= n:
+            return None
+        return torch.randperm(n, generator=self.generator)[:p].to(self.device)
+
+    def losses(self, index: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Weighted loss terms on the points ``index`` (all when None); key ``total`` sums them."""
+        w, unit, d = self.settings.weights, self.settings.weights.length_unit_mm, self.data
+        c = d.template if index is None else d.template[index]
+        target = d.shapes if index is None else d.shapes[:, index]
+        m = c.shape[0]
+        # One pass of every network over skin, constrained and forehead points together.
+        pts = torch.cat([c, d.constraint_points, d.forehead_points, d.jaw_points], dim=0)
+        anatomy = self.model(pts)
+        skin = anatomy.slice(0, m)
+        pred = self.model.training_shapes(skin, self.jaw_rot6d, self.jaw_translation())
+        mc, mf = d.constraint_points.shape[0], d.forehead_points.shape[0]
+        lb, ld, ln = anatomy_losses(anatomy.bone[m:m + mc], anatomy.thickness[m:m + mc], anatomy.normal[m:m + mc],
+                                    d.bone_target, d.thickness_target, d.normal_target, unit)
+        terms = {
+            "skin": w.skin * skin_position_loss(pred, target, unit),
+            "bone": w.bone * lb, "thickness": w.thickness * ld, "normal": w.normal * ln,
+            "thickness_reg": w.thickness_reg * thickness_regularizer(skin.thickness, unit),
+            "symmetry": w.symmetry * symmetry_loss(self.model.bone(d.reflect(c)), d.reflect(skin.bone), unit),
+            "forehead": w.forehead_skinning * skinning_weight_loss(anatomy.skin_weight[m + mc:m + mc + mf]),
+        }
+        if self.settings.jaw_skinning_prior > 0:
+            terms["jaw"] = self.settings.jaw_skinning_prior * skinning_weight_loss(
+                anatomy.skin_weight[m + mc + mf:] - 1.0)
+        terms["total"] = sum(terms.values())
+        return terms
+
+    def step(self) -> dict[str, float]:
+        """One Adam step (plus the closed-form expression solve when due); returns the loss terms."""
+        self.model.train()
+        terms = self.losses(self._sample())
+        self.optimizer.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        self.optimizer.step()
+        self.scheduler.step()
+        self.iteration += 1
+        every = self.settings.expression_solve_every
+        start = self.settings.expression_solve_start * self.settings.iterations
+        if every > 0 and self.iteration % every == 0 and self.iteration >= start:
+            self.solve_expressions()
+        return {k: float(v.detach()) for k, v in terms.items()}
+
+    @torch.no_grad()
+    def solve_expressions(self) -> None:
+        """Set E's linear output layer to its least-squares optimum with everything else fixed.
+
+        Shape i >= 1 is ``LBS(s0, T_i, k) + expression_mm * (H W_i^T + b_i)`` where H are the last
+        sine features of E at the template points; the skin loss is quadratic in (W, b), so the
+        optimum solves one ridge-regularised normal equation shared by all 3(N-1) outputs.
+        """
+        d, model = self.data, self.model
+        anatomy = model(d.template)
+        pred = model.training_shapes(anatomy, self.jaw_rot6d, self.jaw_t)[1:]  # (N-1, V, 3)
+        scale = model.config.expression_mm
+        e_now = anatomy.expressions.permute(1, 0, 2)                     # (N-1, V, 3)
+        residual = (d.shapes[1:] - (pred - e_now)) / scale                 # target of H W^T + b
+        target = residual.permute(1, 0, 2).reshape(d.template.shape[0], -1)  # (V, 3(N-1))
+        h = model.E.features(model.normalize(d.template))
+        h1 = torch.cat([h, torch.ones_like(h[:, :1])], dim=1).double()
+        gram = h1.T @ h1
+        gram += self.settings.expression_solve_ridge * torch.trace(gram) / gram.shape[0] * torch.eye(
+            gram.shape[0], dtype=gram.dtype, device=gram.device)
+        sol = torch.linalg.solve(gram, h1.T @ target.double())            # (width+1, 3(N-1))
+        model.E.output.weight.copy_(sol[:-1].T.to(model.E.output.weight.dtype))
+        model.E.output.bias.copy_(sol[-1].to(model.E.output.bias.dtype))
+        # Adam's running moments belong to the old weights; restart them for this layer.
+        for p in (model.E.output.weight, model.E.output.bias):
+            self.optimizer.state.pop(p, None)
+
+    @torch.no_grad()
+    def evaluate(self) -> Evaluation:
+        """Per-shape mean and max vertex error (mm) on every template point, and anatomy residuals."""
+        self.model.eval()
+        d = self.data
+        anatomy = self.model(d.template)
+        err = (self.model.training_shapes(anatomy, self.jaw_rot6d, self.jaw_t) - d.shapes).norm(dim=-1)
+        con = self.model(d.constraint_points)
+        cosang = (con.normal * d.normal_target).sum(-1).clamp(-1, 1)
+        sym = (self.model.bone(d.reflect(d.template)) - d.reflect(anatomy.bone)).norm(dim=-1)
+        fore = self.model(d.forehead_points).skin_weight if d.forehead_points.shape[0] else torch.zeros(1)
+        return Evaluation(
+            shape_mean_mm=[float(v) for v in err.mean(1)], shape_max_mm=[float(v) for v in err.max(1).values],
+            bone_mm=float((con.bone - d.bone_target).norm(dim=-1).mean()) if len(cosang) else float("nan"),
+            thickness_mm=float((con.thickness - d.thickness_target).abs().mean()) if len(cosang) else float("nan"),
+            normal_deg=float(torch.rad2deg(torch.arccos(cosang)).mean()) if len(cosang) else float("nan"),
+            symmetry_mm=float(sym.mean()), forehead_k=float(fore.abs().mean()),
+        )
+
+    def state_dict(self) -> dict:
+        """Everything needed to continue training exactly (tensors and plain numbers only)."""
+        return {
+            "model": self.model.state_dict(),
+            "jaw_rot6d": self.jaw_rot6d.detach().clone(), "jaw_t_units": self.jaw_t_units.detach().clone(),
+            "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
+            "generator": self.generator.get_state(), "iteration": self.iteration,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.model.load_state_dict(state["model"])
+        with torch.no_grad():
+            self.jaw_rot6d.copy_(state["jaw_rot6d"])
+            self.jaw_t_units.copy_(state["jaw_t_units"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.generator.set_state(state["generator"])
+        self.iteration = int(state["iteration"])
+
+

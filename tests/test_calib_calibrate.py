@@ -1,0 +1,305 @@
+"""``capture calibrate`` on synthetic board footage with known intrinsics, and every bad input.
+
+Footage comes from :mod:`tests.calib_synth` (boards rendered through a known distorted 640x480
+camera, blurred, with noise). OpenCV's calibration is the reference algorithm; what is tested is
+our detection wiring, view selection, outlier rejection, files and error messages.
+
+Tolerances (from the issue) and why they are meaningful here: fx, fy within 0.5 % (3 px), cx, cy
+within 2 px, RMS below 0.5 px. The renders' corner noise is ~0.1 px, so a correct pipeline lands far
+inside them (typically 0.05 % and 0.7 px); a wrong pixel-centre convention (0.5 px), object points
+in the wrong units or order, or ignored distortion (k1 = -0.22 bends the corners by several px) fail.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from calib.board import BoardSpec, parse_board
+from calib.calibrate import CalibrationOptions, calibrate_views
+from calib.camera_io import read_camera
+from calib.detect import BoardDetector
+from capture.errors import CaptureError
+from tests.calib_synth import (CHARUCO_SPEC, CHECKER_SPEC, IMAGE_SIZE, TRUE_DIST, TRUE_K, Renderer,
+                               random_poses, write_images, write_video)
+
+from capture.cli import main
+
+
+
+def run(argv: list[str], capsys) -> tuple[int, str, str]:
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code: int, err: str, *fragments: str) -> None:
+    assert code != 0
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("capture: error: ")
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+
+
+def assert_intrinsics_recovered(cam) -> None:
+    assert cam.image_size == IMAGE_SIZE
+    assert abs(cam.fx / TRUE_K[0, 0] - 1) < 0.005, cam.fx
+    assert abs(cam.fy / TRUE_K[1, 1] - 1) < 0.005, cam.fy
+    assert abs(cam.cx - TRUE_K[0, 2]) < 2.0, cam.cx
+    assert abs(cam.cy - TRUE_K[1, 2]) < 2.0, cam.cy
+    assert cam.rms is not None and cam.rms < 0.5
+    assert abs(cam.dist[0] - TRUE_DIST[0]) < 0.02  # k1 is well determined by 16 views
+
+
+# ------------------------------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def charuco():
+    renderer = Renderer(CHARUCO_SPEC)
+    poses = random_poses(renderer.board, TRUE_K, IMAGE_SIZE, 16, seed=3)
+    rng = np.random.default_rng(1)
+    return renderer, poses, [renderer.render(p, rng=rng) for p in poses]
+
+
+@pytest.fixture(scope="module")
+def charuco_folder(charuco, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("charuco_views")
+    write_images(folder, charuco[2])
+    return folder
+
+
+# ------------------------------------------------------------------------------------------- board spec
+def test_parse_board_specs():
+    b = parse_board("charuco:cols=11,rows=8,square=30,marker=22,dict=DICT_5X5_100")
+    assert b == BoardSpec("charuco", 11, 8, 30.0, 22.0, "DICT_5X5_100", False)
+    assert parse_board(b.text()) == b
+    assert parse_board(" ChArUco: cols=11, rows=8, square=30mm, marker=22, dict=5x5_100, legacy=1 ").legacy
+    c = parse_board("checker:cols=9,rows=6,square=25")
+    assert (c.kind, c.num_corners, c.square_mm) == ("checker", 54, 25.0)
+    assert parse_board(c.text()) == c
+
+
+@pytest.mark.parametrize(
+    "spec, message",
+    [
+        ("", "does not parse"),
+        ("charuco", "does not parse"),
+        ("circles:cols=4,rows=11,square=20", "board kind 'circles' is unknown"),
+        ("checker:cols=9,rows=6", "missing square"),
+        ("checker:cols=9,rows=6,square=25,marker=3", "marker unknown for checker"),
+        ("checker:cols=nine,rows=6,square=25", "cols='nine' must be a whole number"),
+        ("checker:cols=9,rows=6,square=-2", "must be a positive length"),
+        ("checker:cols=9,rows=6,square=25,square=20", "gives 'square' twice"),
+        ("checker:cols=9,rows,square=25", "is not key=value"),
+        ("charuco:cols=11,rows=8,square=30,marker=30,dict=DICT_5X5_100", "must be smaller than the square"),
+        ("charuco:cols=11,rows=8,square=30,marker=22,dict=DICT_9X9_1", "ArUco dictionary 'DICT_9X9_1' is unknown"),
+        ("charuco:cols=20,rows=20,square=30,marker=22,dict=DICT_4X4_50", "needs 200 markers but DICT_4X4_50 has 50"),
+    ],
+)
+def test_parse_board_rejects(spec, message):
+    with pytest.raises(CaptureError, match=message):
+        parse_board(spec)
+
+
+# ------------------------------------------------------------------------------------------ detection
+def test_charuco_detection_matches_truth(charuco):
+    renderer, poses, images = charuco
+    detector = BoardDetector(renderer.board)
+    det, reason = detector.detect(images[0])
+    assert reason is None and len(det.ids) >= 20
+    truth = renderer.project(poses[0])[det.ids]
+    # sub-pixel corners on a blurred, noisy render: ~0.1 px RMS; 0.5 px would mean a convention slip
+    assert np.sqrt(np.mean(np.sum((det.image_points - truth) ** 2, 1))) < 0.3
+    np.testing.assert_array_equal(det.object_points, renderer.board.corner_object_points()[det.ids])
+    none, why = detector.detect(np.full((480, 640), 128, np.uint8))
+    assert none is None and why == "no board detected"
+
+
+# -------------------------------------------------------------------------------------- calibration
+def test_calibrate_charuco_folder_end_to_end(charuco_folder, tmp_path, capsys):
+    out = tmp_path / "cam" / "camera.json"
+    code, stdout, err = run(["calibrate", str(charuco_folder), "--board", CHARUCO_SPEC, "--out", str(out),
+                             "--no-progress"], capsys)
+    assert code == 0, err
+    cam = read_camera(out)
+    assert_intrinsics_recovered(cam)
+    assert not cam.is_default and "capture calibrate" in cam.provenance
+    for key in ("fx", "fy", "cx", "cy"):
+        # OpenCV's 1-sigma from 16 views of ~45 corners at 0.1 px noise: well under a pixel, not zero
+        assert 0 < cam.std_dev[key] < 2.0
+    report = json.loads((tmp_path / "cam" / "camera.report.json").read_text())
+    assert report["num_views"] == len(report["views"]) == 16
+    assert report["rms_px"] == pytest.approx(cam.rms)
+    assert all(v["rms_px"] < 0.5 for v in report["views"])
+    assert 0.5 < report["coverage"] <= 1.0
+    assert set(report["std_dev"]) >= {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}
+    assert report["settings"]["board"] == CHARUCO_SPEC and report["settings"]["max_views"] == 40
+    png = tmp_path / "cam" / "camera.report.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and cv2.imread(str(png)).shape[1] > 800
+    assert "RMS" in stdout and "fx" in stdout
+
+
+def test_calibrate_video_drops_blurred_and_duplicate_frames(charuco, tmp_path, capsys):
+    renderer, poses, images = charuco
+    rng = np.random.default_rng(2)
+    frames, kinds = [], []
+    for i, (pose, img) in enumerate(zip(poses[:12], images[:12])):
+        frames.append(img)
+        kinds.append("sharp")
+        frames.append(renderer.render(pose, rng=rng))  # the board held still: a near-duplicate
+        kinds.append("duplicate")
+        if i % 3 == 0:  # motion-blurred but still detectable
+            frames.append(renderer.render(poses[12 + i // 3], motion_blur_px=5, blur_sigma=1.2, rng=rng))
+            kinds.append("blurred")
+    video = write_video(tmp_path / "take.avi", frames)
+    out = tmp_path / "camera.yaml"  # OpenCV's format, chosen by the suffix
+    code, stdout, err = run(["calibrate", str(video), "--board", CHARUCO_SPEC, "--out", str(out), "--no-progress"],
+                            capsys)
+    assert code == 0, err
+    assert_intrinsics_recovered(read_camera(out))  # MJPG at quality 100 keeps corners sub-pixel
+    report = json.loads((tmp_path / "camera.report.json").read_text())
+    assert report["input"]["kind"] == "video" and report["input"]["frames"] == len(frames)
+    reasons = {d["frame"]: d["reason"] for d in report["dropped"]}
+    used = {v["frame"] for v in report["views"]}
+    blurred = [k for k, kind in enumerate(kinds) if kind == "blurred"]
+    assert all(k not in used for k in blurred)
+    assert all(k in reasons for k in blurred)  # each says why: blurred, or too blurred to detect
+    assert sum(reasons[k].startswith("blurred") for k in blurred) >= 2
+    assert sum(r.startswith("near-duplicate") for r in reasons.values()) >= 10
+    assert len(used) == 12
+    assert "dropped:" in stdout and "near-duplicate" in stdout
+
+
+def test_max_views_cap_keeps_coverage(charuco_folder, tmp_path, capsys):
+    out = tmp_path / "c.json"
+    code, _, err = run(["calibrate", str(charuco_folder), "--board", CHARUCO_SPEC, "--out", str(out),
+                        "--max-views", "8", "--min-views", "6", "--no-progress"], capsys)
+    assert code == 0, err
+    report = json.loads((tmp_path / "c.report.json").read_text())
+    assert report["num_views"] == 8
+    assert sum("over the cap of 8 views" in d["reason"] for d in report["dropped"]) == 8
+    assert report["coverage"] > 0.4  # greedy choice spreads the 8 views over the image
+    cam = read_camera(out)
+    assert abs(cam.fx / TRUE_K[0, 0] - 1) < 0.01  # fewer views: looser, still close
+
+
+@pytest.mark.parametrize(
+    "flag, check",
+    [
+        ("--fix-principal-point", lambda c: (c.cx, c.cy) == ((640 - 1) / 2, (480 - 1) / 2)),
+        ("--fix-aspect-ratio", lambda c: c.fx == c.fy),
+        ("--fix-k3", lambda c: c.dist[4] == 0.0 and c.dist[0] != 0.0),
+        ("--rational", lambda c: c.dist.size == 8),
+    ],
+)
+def test_calibration_flags(charuco_folder, tmp_path, capsys, flag, check):
+    out = tmp_path / "c.json"
+    code, _, err = run(["calibrate", str(charuco_folder), "--board", CHARUCO_SPEC, "--out", str(out), flag,
+                        "--no-progress"], capsys)
+    assert code == 0, err
+    assert check(read_camera(out))
+    assert json.loads((tmp_path / "c.report.json").read_text())["flags"][flag[2:].replace("-", "_")] is True
+
+
+def test_outlier_view_is_rejected_and_recalibrated(charuco):
+    renderer, poses, images = charuco
+    detector = BoardDetector(renderer.board)
+    dets = [detector.detect(img)[0] for img in images]
+    obj = [d.object_points for d in dets]
+    img = [d.image_points.copy() for d in dets]
+    rng = np.random.default_rng(0)
+    img[5] = img[5] + rng.normal(0, 3.0, img[5].shape).astype(np.float32)  # a mis-detected view
+    labels = [f"v{i}" for i in range(len(dets))]
+    result = calibrate_views(obj, img, labels, IMAGE_SIZE, CalibrationOptions())
+    assert [v.label for v in result.rejected] == ["v5"]
+    assert result.rejected[0].rms_px > 2.0
+    assert "v5" not in [v.label for v in result.views] and len(result.views) == len(dets) - 1
+    assert_intrinsics_recovered(result.camera)
+    kept = calibrate_views(obj, img, labels, IMAGE_SIZE, CalibrationOptions(outlier_factor=0))
+    assert kept.rms_px > 3 * result.rms_px  # without rejection the bad view dominates the RMS
+
+
+def test_calibrate_checkerboard(tmp_path, capsys):
+    renderer = Renderer(CHECKER_SPEC)
+    poses = random_poses(renderer.board, TRUE_K, IMAGE_SIZE, 12, seed=5, fully_visible=True)
+    rng = np.random.default_rng(3)
+    folder = tmp_path / "checker"
+    write_images(folder, [renderer.render(p, rng=rng) for p in poses], ".jpg")
+    out = tmp_path / "checker.json"
+    code, _, err = run(["calibrate", str(folder), "--board", CHECKER_SPEC, "--out", str(out), "--no-progress"],
+                       capsys)
+    assert code == 0, err
+    assert_intrinsics_recovered(read_camera(out))
+
+
+# ------------------------------------------------------------------------------------------ bad input
+def test_error_board_spec_does_not_parse(charuco_folder, tmp_path, capsys):
+    code, _, err = run(["calibrate", str(charuco_folder), "--board", "charuco:cols=9", "--out",
+                        str(tmp_path / "c.json")], capsys)
+    assert_one_line_error(code, err, "board spec for charuco is missing", "dict, marker, rows, square")
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_error_no_board_in_any_frame(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    write_images(tmp_path / "noise", [rng.integers(0, 255, (480, 640), dtype=np.uint8) for _ in range(3)])
+    code, _, err = run(["calibrate", str(tmp_path / "noise"), "--board", CHARUCO_SPEC, "--out",
+                        str(tmp_path / "c.json"), "--no-progress"], capsys)
+    assert_one_line_error(code, err, "no board found in any of the 3 frames", "3 no board detected")
+
+
+def test_error_too_few_views(charuco, tmp_path, capsys):
+    write_images(tmp_path / "few", charuco[2][:3])
+    code, _, err = run(["calibrate", str(tmp_path / "few"), "--board", CHARUCO_SPEC, "--out",
+                        str(tmp_path / "c.json"), "--no-progress"], capsys)
+    assert_one_line_error(code, err, "too few usable views: found 3, need at least 6")
+
+
+def test_error_wrong_board_gives_no_board(charuco_folder, tmp_path, capsys):
+    code, _, err = run(["calibrate", str(charuco_folder), "--board",
+                        "charuco:cols=9,rows=7,square=30,marker=22,dict=DICT_4X4_50", "--out",
+                        str(tmp_path / "c.json"), "--no-progress"], capsys)
+    assert_one_line_error(code, err, "no board found in any of the 16 frames", "ArUco dictionary")
+
+
+def test_error_unreadable_video(tmp_path, capsys):
+    bad = tmp_path / "take.mp4"
+    bad.write_bytes(b"this is not a video" * 100)
+    code, _, err = run(["calibrate", str(bad), "--board", CHARUCO_SPEC, "--out", str(tmp_path / "c.json")], capsys)
+    assert_one_line_error(code, err, f"cannot read video {bad}")
+
+
+def test_error_images_of_different_sizes(charuco, tmp_path, capsys):
+    folder = tmp_path / "mixed"
+    write_images(folder, charuco[2][:6])
+    cv2.imwrite(str(folder / "view_100.png"), cv2.resize(charuco[2][6], (800, 600)))
+    code, _, err = run(["calibrate", str(folder), "--board", CHARUCO_SPEC, "--out", str(tmp_path / "c.json"),
+                        "--no-progress"], capsys)
+    assert_one_line_error(code, err, "images have different sizes", "640x480", "view_100.png is 800x600")
+
+
+def test_error_missing_input_and_empty_folder(tmp_path, capsys):
+    code, _, err = run(["calibrate", str(tmp_path / "nope.mp4"), "--board", CHARUCO_SPEC], capsys)
+    assert_one_line_error(code, err, "does not exist")
+    (tmp_path / "empty").mkdir()
+    code, _, err = run(["calibrate", str(tmp_path / "empty"), "--board", CHARUCO_SPEC], capsys)
+    assert_one_line_error(code, err, "no images in folder")
+
+
+def test_error_bad_out_suffix(charuco_folder, tmp_path, capsys):
+    code, _, err = run(["calibrate", str(charuco_folder), "--board", CHARUCO_SPEC, "--out",
+                        str(tmp_path / "camera.txt")], capsys)
+    assert_one_line_error(code, err, "must end in .json")
+
+
+def test_help_documents_board_grammar(capsys):
+    code, out, _ = run(["calibrate", "--help"], capsys)
+    assert code == 0
+    text = "".join(out.replace("│", " ").split())  # help may be wrapped in a rich panel
+    assert "charuco:cols=C,rows=R,square=S,marker=M,dict=NAME" in text
+    assert "checker:cols=C,rows=R,square=S" in text
+    assert "ArUcodictionary" in text and "innercorners" in text and "INPUT" in text
