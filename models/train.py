@@ -34,7 +34,7 @@ from models.rotation import identity_6d, kabsch, matrix_to_rot6d
 class TrainSettings:
     """Settings of one actor training (saved in the actor package)."""
 
-    iterations: int = 4000
+    iterations: int = 3000
     lr: float = 2e-3
     lr_final_fraction: float = 0.01
     """Cosine decay of the learning rate to this fraction of ``lr``; 1.0 keeps it constant."""
@@ -44,10 +44,10 @@ class TrainSettings:
     hidden_omega_0: float = 1.0
     points_per_step: int = 0
     """Template points sampled per step; 0 = all points every step."""
-    expression_solve_every: int = 200
+    expression_solve_every: int = 100
     """Closed-form solve of E's output layer every this many steps (0 = never, as in the paper)."""
     expression_solve_ridge: float = 1e-6
-    expression_solve_start: float = 0.25
+    expression_solve_start: float = 0.0
     """The first closed-form solve waits for this fraction of the iterations, so that the jaw
     (LBS) explains the rigid part of the motion before the expression basis absorbs it."""
     jaw_skinning_prior: float = 1.0

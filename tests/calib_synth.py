@@ -5,7 +5,7 @@ Rendering (all OpenCV or plain numpy, independent of the code under test):
 1. A flat board texture: ``CharucoBoard.generateImage`` (ChArUco) or numpy squares (checker), with a
    white quiet zone, at ``px_per_mm`` texture pixels per millimetre.
 2. For every pixel of the output (rendered at ``supersample`` times the resolution) the
-   *undistorted* pixel is found with ``cv2.undistortPoints`` (many iterations, so exact to ~1e-6 px),
+   *undistorted* pixel is found with ``cv2.undistortPointsIter`` (many iterations, so exact to ~1e-6 px),
    turned into a ray and intersected with the board plane of the view's known pose (the inverse
    homography ``(K [r1 r2 t])^-1``); the texture is sampled there with ``cv2.remap``.
 3. The supersampled image is area-averaged down (``INTER_AREA``; with the pixel-centre convention
@@ -121,7 +121,7 @@ class Renderer:
         ys, xs = np.mgrid[0:hs, 0:ws].astype(np.float64)
         pix = np.stack([xs.ravel(), ys.ravel()], 1).reshape(-1, 1, 2)
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-        und = cv2.undistortPoints(pix, Ks, self.dist, P=Ks, criteria=crit).reshape(-1, 2)
+        und = cv2.undistortPointsIter(pix, Ks, self.dist, np.eye(3), Ks, crit).reshape(-1, 2)
         self._und = und.astype(np.float32).reshape(hs, ws, 2)  # undistorted pixel of each output pixel
         # rays of a 640x480 camera with tilts <= 40 deg always meet the board plane in front of the camera
 
