@@ -14,6 +14,7 @@ import typer
 from calib.cli import calibrate_command
 from capture.actor_cli import actor_app
 from capture.errors import CaptureError
+from capture.synth_cli import synth_command
 
 app = typer.Typer(
     name="capture",
@@ -24,6 +25,7 @@ app = typer.Typer(
 )
 app.add_typer(actor_app, name="actor")
 app.command("calibrate")(calibrate_command)
+app.command("synth")(synth_command)
 
 
 def main(argv: list[str] | None = None) -> int:

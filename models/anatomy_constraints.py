@@ -328,6 +328,8 @@ def compute_anatomy_constraints(
     orient_bones: bool = True,
     check_occlusion: bool = True,
     dedup_mm: float | None = None,
+    consistency_radius_mm: float = 6.0,
+    max_thickness_jump_mm: float = 2.0,
 ) -> AnatomyConstraints:
     """Sparse skin-to-bone constraints by ray casting (see the module docstring).
 
@@ -341,6 +343,9 @@ def compute_anatomy_constraints(
         check_occlusion: drop inward rays that leave the skin before reaching the bone.
         dedup_mm: cube size for merging back-ray hits on the same spot; default 1/4 mean skin edge,
             0 disables.
+        consistency_radius_mm, max_thickness_jump_mm: a constraint whose thickness differs by more
+            than the jump from the median thickness of the constraints within the radius is dropped
+            (:func:`consistent_constraints`); radius 0 disables.
 
     Returns:
         AnatomyConstraints with M rows.
@@ -435,6 +440,11 @@ def compute_anatomy_constraints(
         sel = np.sort(order[first])
         ftri, floc, thick, bpt, bn, blab = (a[sel] for a in (ftri, floc, thick, bpt, bn, blab))
 
+    # 6. drop constraints that disagree with their neighbourhood (layer jumps, teeth, closed orbits)
+    if consistency_radius_mm > 0 and len(ftri):
+        keep = consistent_constraints(floc, thick, consistency_radius_mm, max_thickness_jump_mm)
+        ftri, floc, thick, bpt, bn, blab = (a[keep] for a in (ftri, floc, thick, bpt, bn, blab))
+
     if len(ftri) == 0:
         raise CaptureError(
             "the bones do not underlie the skin: no skin-to-bone constraint found; "
@@ -452,6 +462,23 @@ def compute_anatomy_constraints(
         n_vertices=int(nv),
         n_candidates=int(trusted_mask.sum()),
     )
+
+
+def consistent_constraints(skin_points: np.ndarray, thickness: np.ndarray, radius_mm: float,
+                           max_jump_mm: float) -> np.ndarray:
+    """(M,) bool: constraints whose thickness is within ``max_jump_mm`` of the median thickness of
+    the constraints within ``radius_mm`` on the skin (itself included).
+
+    The supplement keeps constraints only inside a hand-painted trusted region. This is its
+    automatic counterpart: where neighbouring rays land on different bone layers (overlapping
+    shells, teeth behind the lips, a closed orbit plate behind the eyelid) the thickness field
+    jumps, and such targets would ask the smooth networks for a discontinuity. A smooth bone
+    under smooth skin passes: over 6 mm the thickness of a face changes by far less than 2 mm.
+    """
+    tree = cKDTree(skin_points)
+    groups = tree.query_ball_point(skin_points, r=radius_mm)
+    med = np.array([np.median(thickness[g]) for g in groups])
+    return np.abs(thickness - med) <= max_jump_mm
 
 
 def default_trusted_region(skin: trimesh.Trimesh, frame=None, *, boundary_margin_mm: float = 10.0) -> np.ndarray:

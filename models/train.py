@@ -27,7 +27,7 @@ from models.aim import AIMConfig, AnatomicalFaceModel
 from models.checks import check_shapes
 from models.losses import (LossWeights, anatomy_losses, skin_position_loss, skinning_weight_loss,
                            symmetry_loss, thickness_regularizer)
-from models.rotation import identity_6d, kabsch, matrix_to_rot6d
+from models.rotation import identity_6d, kabsch, matrix_to_rot6d, rot6d_to_matrix
 
 
 @dataclass(frozen=True)
@@ -47,6 +47,8 @@ class TrainSettings:
     expression_solve_every: int = 100
     """Closed-form solve of E's output layer every this many steps (0 = never, as in the paper)."""
     expression_solve_ridge: float = 1e-6
+    anatomy_solve: bool = True
+    """With each expression solve, also solve B's and D's output layers jointly (``solve_anatomy``)."""
     expression_solve_start: float = 0.0
     """The first closed-form solve waits for this fraction of the iterations, so that the jaw
     (LBS) explains the rigid part of the motion before the expression basis absorbs it."""
@@ -74,7 +76,7 @@ class TrainSettings:
 PRESETS: dict[str, TrainSettings] = {
     "default": TrainSettings(),
     "paper": TrainSettings(iterations=10_000, lr=2e-3, lr_final_fraction=1.0, width=256, depth=3,
-                           first_omega_0=30.0, hidden_omega_0=30.0, expression_solve_every=0,
+                           first_omega_0=30.0, hidden_omega_0=30.0, expression_solve_every=0, anatomy_solve=False,
                            jaw_skinning_prior=0.0),
 }
 
@@ -258,6 +260,8 @@ class ActorTrainer:
         every = self.settings.expression_solve_every
         start = self.settings.expression_solve_start * self.settings.iterations
         if every > 0 and self.iteration % every == 0 and self.iteration >= start:
+            if self.settings.anatomy_solve:
+                self.solve_anatomy()
             self.solve_expressions()
         return {k: float(v.detach()) for k, v in terms.items()}
 
@@ -287,6 +291,81 @@ class ActorTrainer:
         # Adam's running moments belong to the old weights; restart them for this layer.
         for p in (model.E.output.weight, model.E.output.bias):
             self.optimizer.state.pop(p, None)
+
+    @torch.no_grad()
+    def solve_anatomy(self) -> None:
+        """Set the linear output layers of B and D jointly to their least-squares optimum.
+
+        With the sine features of B and D, the normals N, the skinning weights K, the jaw
+        transforms and the expression basis E fixed, the neutral ``s0 = b + d n`` is linear in the
+        output layers of B and D, and so is every training shape ``s_i = A_i s0 + r_i`` (LBS is
+        linear in the rest position: ``A_i = (1 - k) I + k R_i``). The skin loss over all shapes,
+        the bone and thickness terms of the anatomy loss and the thickness regulariser are then one
+        quadratic in 4 (width + 1) unknowns, solved exactly here. (The symmetry term, weight 1e-4,
+        is left to Adam.) Solving it makes b, d and n agree on the skin at once, which Adam alone
+        reaches only slowly because each of the three networks must learn to cancel the others'
+        errors.
+        """
+        d, model, w = self.data, self.model, self.settings.weights
+        u2 = w.length_unit_mm ** 2
+        f64 = torch.float64
+        c = d.template.double()
+        P, N = c.shape[0], d.shapes.shape[0]
+        x = model.normalize(d.template)
+        an = model(d.template)
+        pred = model.training_shapes(an, self.jaw_rot6d, self.jaw_t).double()     # (N, P, 3)
+        eye = torch.eye(3, dtype=f64, device=c.device)
+        R = torch.cat([eye[None], rot6d_to_matrix(self.jaw_rot6d).double()], 0)   # (N, 3, 3)
+        k = an.skin_weight.double()[None, :, None, None]
+        A = (1 - k) * eye + k * R[:, None]                                         # (N, P, 3, 3)
+        s0 = an.neutral.double()
+        y = d.shapes.double() - (pred - torch.einsum("npab,pb->npa", A, s0))     # targets of A s0
+        G = torch.einsum("npab,npac->pbc", A, A)                                   # sum_i A^T A
+        q = torch.einsum("npab,npa->pb", A, y) - torch.einsum("pab,pb->pa", G, c)
+        n = an.normal.double()
+        one = torch.ones(P, 1, dtype=f64, device=c.device)
+        hB = torch.cat([model.B.features(x).double(), one], 1)                    # (P, h1)
+        hD = torch.cat([model.D.features(x).double(), one], 1)
+        h1 = hB.shape[1]
+        sb, sd = model.config.bone_offset_mm, model.config.thickness_mm
+        a_s = w.skin / (N * P * u2)
+        Gn = torch.einsum("pab,pb->pa", G, n)
+        M = torch.zeros(4 * h1, 4 * h1, dtype=f64, device=c.device)
+        rhs = torch.zeros(4 * h1, dtype=f64, device=c.device)
+        for a in range(3):
+            for b in range(3):
+                M[a * h1:(a + 1) * h1, b * h1:(b + 1) * h1] = a_s * sb * sb * (hB.T * G[:, a, b]) @ hB
+            bd = a_s * sb * sd * (hB.T * Gn[:, a]) @ hD
+            M[a * h1:(a + 1) * h1, 3 * h1:] = bd
+            M[3 * h1:, a * h1:(a + 1) * h1] = bd.T
+            rhs[a * h1:(a + 1) * h1] = a_s * sb * hB.T @ q[:, a]
+        M[3 * h1:, 3 * h1:] = a_s * sd * sd * (hD.T * (n * Gn).sum(1)) @ hD
+        rhs[3 * h1:] = a_s * sd * hD.T @ (n * q).sum(1)
+        # thickness regulariser on every skin point
+        M[3 * h1:, 3 * h1:] += w.thickness_reg / (P * u2) * sd * sd * hD.T @ hD
+        m = d.constraint_points.shape[0]
+        if m:
+            xm = model.normalize(d.constraint_points)
+            onem = torch.ones(m, 1, dtype=f64, device=c.device)
+            hBm = torch.cat([model.B.features(xm).double(), onem], 1)
+            hDm = torch.cat([model.D.features(xm).double(), onem], 1)
+            a_b, a_d = w.bone / (m * u2), w.thickness / (m * u2)
+            target_b = d.bone_target.double() - d.constraint_points.double()
+            for a in range(3):
+                M[a * h1:(a + 1) * h1, a * h1:(a + 1) * h1] += a_b * sb * sb * hBm.T @ hBm
+                rhs[a * h1:(a + 1) * h1] += a_b * sb * hBm.T @ target_b[:, a]
+            M[3 * h1:, 3 * h1:] += a_d * sd * sd * hDm.T @ hDm
+            rhs[3 * h1:] += a_d * sd * hDm.T @ d.thickness_target.double()
+        M += self.settings.expression_solve_ridge * torch.trace(M) / M.shape[0] * torch.eye(
+            M.shape[0], dtype=f64, device=c.device)
+        theta = torch.linalg.solve(M, rhs)
+        WB = theta[:3 * h1].reshape(3, h1)
+        wD = theta[3 * h1:]
+        for layer, W in ((model.B.output, WB), (model.D.output, wD[None])):
+            layer.weight.copy_(W[:, :-1].to(layer.weight.dtype))
+            layer.bias.copy_(W[:, -1].to(layer.bias.dtype))
+            for p in (layer.weight, layer.bias):
+                self.optimizer.state.pop(p, None)
 
     @torch.no_grad()
     def evaluate(self) -> Evaluation:
