@@ -1,8 +1,72 @@
-"""``capture synth`` (placeholder until the synthetic-take work lands)."""
+"""``capture synth``: render a synthetic take of an actor with known truth (see capture.synth.take)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
 
 from capture.errors import CaptureError
 
 
-def synth_command() -> None:
-    """Render a synthetic take of an actor with known truth."""
-    raise CaptureError("capture synth is not available in this build yet")
+def _parse_size(text: Optional[str]) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise CaptureError(f"--size must look like 1280x720, got '{text}'") from None
+    return w, h
+
+
+def _parse_distortion(text: Optional[str]) -> tuple[float, ...] | None:
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise CaptureError(f"--distortion must be comma-separated numbers k1,k2,p1,p2[,k3], got '{text}'") from None
+    if len(vals) not in (4, 5, 8):
+        raise CaptureError(f"--distortion needs 4, 5 or 8 OpenCV coefficients (k1,k2,p1,p2[,k3...]), got {len(vals)}")
+    return vals
+
+
+def synth_command(
+    actor: str = typer.Option(..., "--actor", help="Actor name or folder to render."),
+    out: Path = typer.Option(..., "--out", help="Output folder of the take."),
+    frames: int = typer.Option(150, "--frames", help="Number of frames."),
+    fps: float = typer.Option(25.0, "--fps", help="Frame rate."),
+    size: Optional[str] = typer.Option(None, "--size", help="Frame size WxH (default 1280x720, or the camera file's)."),
+    preset: str = typer.Option("talk", "--preset", help="Motion: talk, turns, calm, frontal (no head rotation), yaw30."),
+    seed: int = typer.Option(0, "--seed", help="Random seed of the motion."),
+    landmarks: int = typer.Option(1000, "--landmarks", help="Number of detector landmarks (farthest-point sampled)."),
+    distortion: Optional[str] = typer.Option(None, "--distortion", help="OpenCV distortion k1,k2,p1,p2[,k3] to render with."),
+    camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file to use instead of the default 60 deg camera."),
+    codec: str = typer.Option("h264-lossless", "--codec", help="h264-lossless (exact pixels) or h264 (yuv444p, --crf)."),
+    crf: int = typer.Option(8, "--crf", help="Constant quality of --codec h264 (0 best .. 51)."),
+    obj: bool = typer.Option(False, "--obj", help="Also write one OBJ mesh per frame."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing take in --out."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
+) -> None:
+    """Render a synthetic take of an actor with known truth: video, camera, ground-truth meshes and
+    parameters, landmarks, and a detector that reads the rendered pixels."""
+    from capture.synth.take import SynthConfig, synthesize
+
+    cfg = SynthConfig(actor=actor, out=out, frames=frames, fps=fps, size=_parse_size(size), preset=preset, seed=seed,
+                      landmarks=landmarks, distortion=_parse_distortion(distortion), camera=camera, codec=codec,
+                      crf=crf, obj=obj, overwrite=overwrite)
+    if not progress:
+        path = synthesize(cfg)
+    else:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                      TimeRemainingColumn()) as bar:
+            state: dict = {}
+
+            def on_stage(desc: str, total: int) -> None:
+                state["task"] = bar.add_task(desc, total=total)
+
+            path = synthesize(cfg, on_stage=on_stage, on_frame=lambda: bar.advance(state["task"]))
+    typer.echo(f"synthetic take written to {path}")

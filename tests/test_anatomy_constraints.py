@@ -68,7 +68,9 @@ def test_offset_sphere_matches_analytic_ray_intersection():
     r_bone, r_skin = 80.0, 100.0
     skin = sphere(r_skin, 5)
     bone = sphere(r_bone, 5, centre=centre, seed=2)
-    c = compute_anatomy_constraints(skin, [bone])
+    # the ray casting itself: thickness up to 28 mm here, and no smoothing of the targets
+    c = compute_anatomy_constraints(skin, [bone], max_thickness=30.0, max_angle_deg=45.0, smooth_mm=0.0,
+                                    consistency_radius_mm=0.0)
     # analytic: from the exact bone point along the exact radial normal u, |b + t u| = R
     u = c.bone_point - centre
     u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -227,3 +229,31 @@ def test_sample_actor_constraints():
     assert 2.0 < np.median(c.thickness) < 15.0  # adult facial soft tissue is ~3-20 mm
     assert c.thickness.max() <= 30.0 + 1e-6
     assert set(np.unique(c.bone_label)) == {0, 1}  # both skull and jaw carry constraints
+
+
+def test_smoothing_removes_normal_flicker_and_keeps_targets_consistent():
+    from models.anatomy_constraints import smooth_constraint_fields
+
+    rng = np.random.default_rng(0)
+    skin = sphere(100.0, 4)
+    pts = np.asarray(skin.vertices)
+    radial = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    noisy = radial + rng.normal(scale=0.05, size=pts.shape)  # ~3 degrees of flicker
+    noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
+    thick = 10.0 + rng.normal(scale=0.5, size=len(pts))
+    d, n = smooth_constraint_fields(pts, thick, noisy, sigma_mm=6.0)
+    ang = lambda a: np.degrees(np.arccos(np.clip((a * radial).sum(1), -1, 1)))
+    assert ang(n).mean() < 0.5 * ang(noisy).mean()
+    assert np.abs(d - 10.0).mean() < 0.5 * np.abs(thick - 10.0).mean()
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
+
+
+def test_consistency_filter_drops_a_layer_jump():
+    from models.anatomy_constraints import consistent_constraints
+
+    xs, ys = np.meshgrid(np.arange(0, 30.0, 1.5), np.arange(0, 30.0, 1.5))
+    pts = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
+    thick = 5.0 + 0.02 * pts[:, 0]            # a gently varying thickness passes
+    thick[50] += 8.0                           # one ray that hit a deeper layer
+    keep = consistent_constraints(pts, thick, radius_mm=6.0, max_jump_mm=2.0)
+    assert not keep[50] and keep.sum() == len(pts) - 1

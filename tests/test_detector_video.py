@@ -1,0 +1,217 @@
+"""Video reading, the Haar face finder on real clips, batched vs unbatched runs, the detection cache."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from capture.detector import Detector, LandmarkTrack, TrackOptions, detect_video
+from capture.detector import synthetic as S
+from capture.detector.finder import HaarFinder
+from capture.errors import CaptureError
+from capture.video import VideoReader, open_video, video_identity
+
+GRID = Path("/work/shared/assets/videos/grid_corpus")
+CLIPS = sorted(GRID.glob("*.mpg"))
+needs_grid = pytest.mark.skipif(not CLIPS, reason="GRID clips not present")
+
+
+@needs_grid
+def test_reader_reports_count_fps_size():
+    with open_video(CLIPS[0]) as r:
+        assert (r.info.frame_count, r.info.fps, r.info.width, r.info.height) == (75, 25.0, 360, 288)
+        assert r.info.rotation_deg == 0
+        seq = dict(r.frames())
+        assert sorted(seq) == list(range(75))
+        picked = dict(r.frames([3, 40, 41]))  # rewinds and skips
+        assert sorted(picked) == [3, 40, 41]
+        for i in picked:
+            np.testing.assert_array_equal(picked[i], seq[i])
+        assert seq[0].dtype == np.uint8 and seq[0].shape == (288, 360, 3)
+
+
+def test_reader_errors(tmp_path):
+    with pytest.raises(CaptureError, match="does not exist"):
+        VideoReader(tmp_path / "none.mp4")
+    bad = tmp_path / "bad.mp4"
+    bad.write_bytes(b"this is not a video" * 100)
+    with pytest.raises(CaptureError) as e:
+        VideoReader(bad)
+    assert "bad.mp4" in str(e.value) and "\n" not in str(e.value)
+    empty = tmp_path / "empty.avi"
+    empty.write_bytes(b"")
+    with pytest.raises(CaptureError):
+        VideoReader(empty)
+
+
+@needs_grid
+def test_video_identity_ignores_path(tmp_path):
+    copy = tmp_path / "copy.mpg"
+    shutil.copy(CLIPS[0], copy)
+    assert video_identity(copy) == video_identity(CLIPS[0]) != video_identity(CLIPS[1])
+
+
+@needs_grid
+def test_haar_finds_one_face_in_every_clip():
+    """The finder on every frame of every clip: exactly one face, of a plausible size."""
+    finder = HaarFinder()
+    for clip in CLIPS:
+        with open_video(clip) as r:
+            for i, frame in r.frames():
+                boxes = finder.find_all(frame)
+                assert len(boxes) == 1, (clip.name, i, boxes)
+                x0, y0, x1, y1 = boxes[0]
+                assert 60 <= x1 - x0 <= 250 and 0 <= x0 and x1 <= 360 and y1 <= 288, (clip.name, i)
+
+
+def _conv_detector(tmp_path, segment=16):
+    spec = S.detector_spec(name="conv", count=68, size=(96, 96), first_frame="haar", margin=0.1)
+    path = S.save_detector(S.conv_model(size=(96, 96), count=68, widths=(8, 16)), spec, tmp_path, "conv")
+    return Detector.load(path, options=TrackOptions(segment=segment), threads=1)
+
+
+@needs_grid
+def test_batched_equals_unbatched(tmp_path):
+    det = _conv_detector(tmp_path)
+    clip = CLIPS[0]
+    a = detect_video(clip, det, None, progress=False, batch=1)
+    calls_unbatched = det.model_calls
+    det.model_calls = 0
+    b = detect_video(clip, det, None, progress=False, batch=5)
+    assert det.model_calls < calls_unbatched / 3  # 5 segments side by side
+    assert a.face_found.all() and len(a) == 75
+    np.testing.assert_array_equal(a.frame_index, b.frame_index)
+    np.testing.assert_allclose(a.points, b.points, atol=1e-4)
+    np.testing.assert_allclose(a.crops, b.crops, atol=1e-4)
+    # the track follows the face: crops stay on the Haar face box of the first frame
+    x0, y0, x1, y1 = HaarFinder().find(next(open_video(clip).frames([0]))[1])
+    assert abs(a.crops[0, 0] - (x0 + x1) / 2) < 0.2 * (x1 - x0)
+
+
+@needs_grid
+def test_cache_rerun_and_resume(tmp_path):
+    det = _conv_detector(tmp_path)
+    clip = CLIPS[1]
+    first = detect_video(clip, det, tmp_path / "out", progress=False)
+    assert first.detected_frames == 75 and first.cached_frames == 0 and det.model_calls > 0
+    det.model_calls = 0
+    again = detect_video(clip, det, tmp_path / "out", progress=False)
+    assert det.model_calls == 0 and again.cached_frames == 75
+    np.testing.assert_array_equal(again.points, first.points)
+    # a partial cache: two segments lost (as after an interrupted run) -> only those are detected
+    (key_dir,) = (tmp_path / "out" / "detections").iterdir()
+    segs = sorted(key_dir.glob("seg_*.npz"))
+    assert [p.name for p in segs] == [f"seg_{s:08d}.npz" for s in (0, 16, 32, 48, 64)]
+    segs[1].unlink()
+    segs[4].unlink()
+    resumed = detect_video(clip, det, tmp_path / "out", progress=False)
+    assert resumed.detected_frames == 16 + 11 and resumed.cached_frames == 75 - 27
+    assert 0 < det.model_calls
+    np.testing.assert_allclose(resumed.points, first.points, atol=1e-9)
+    # another detector setting is another key
+    det2 = _conv_detector(tmp_path, segment=25)
+    detect_video(clip, det2, tmp_path / "out", progress=False, frames=range(10, 20))
+    assert len(list((tmp_path / "out" / "detections").iterdir())) == 2
+
+
+@needs_grid
+def test_frame_subset_and_npz_round_trip(tmp_path):
+    det = _conv_detector(tmp_path)
+    clip = CLIPS[2]
+    part = detect_video(clip, det, tmp_path / "out", frames=range(20, 30), progress=True)  # bar: smoke
+    assert part.frame_index.tolist() == list(range(20, 30)) and part.points.shape == (10, 68, 2)
+    assert part.fps == 25.0 and part.image_size == (360, 288)
+    whole = detect_video(clip, det, tmp_path / "out", progress=False)
+    np.testing.assert_array_equal(whole.points[20:30], part.points)  # segment-aligned: same result
+    p = whole.save_npz(tmp_path / "lm.npz")
+    back = LandmarkTrack.load_npz(p)
+    np.testing.assert_array_equal(back.points, whole.points)
+    assert back.detector == "conv" and back.confidence is None
+    with pytest.raises(CaptureError, match="video has frames 0..74"):
+        detect_video(clip, det, None, frames=range(70, 80), progress=False)
+
+
+def _moving_blobs_video(path: Path, n: int = 40):
+    """Lossless video of three coloured blobs that move 2 px and turn 1.5 deg per frame; returns truth."""
+    import cv2
+
+    from tests.test_detector_crop import _blobs
+
+    base = np.array([[-20.0, -10.0], [20.0, -10.0], [0.0, 25.0]])
+    truth = []
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 25, (320, 240))
+    for t in range(n):
+        a = np.radians(1.5 * t)
+        r = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        c = base @ r.T + [100.0 + 2.0 * t, 110.0 + 0.7 * t]
+        truth.append(c)
+        w.write(_blobs(240, 320, c, [(0, 0, 255), (0, 255, 0), (255, 0, 0)], sigma=4.0))
+    w.release()
+    return np.array(truth)
+
+
+def test_tracking_follows_motion_batched_and_unbatched(tmp_path):
+    truth = _moving_blobs_video(tmp_path / "blobs.avi")
+    spec = S.detector_spec(size=(96, 96), first_frame="full_frame", margin=0.8, align={"left": 0, "right": 1},
+                           presence={"name": "face_score", "threshold": 0.2})
+    path = S.save_detector(S.centroid_model(size=(96, 96)), spec, tmp_path, "centroid")
+    det = Detector.load(path, options=TrackOptions(segment=16))
+    a = detect_video(tmp_path / "blobs.avi", det, None, progress=False, batch=1)
+    b = detect_video(tmp_path / "blobs.avi", det, None, progress=False, batch=3)
+    assert a.face_found.all() and len(a) == 40
+    np.testing.assert_allclose(a.points, truth, atol=0.1)
+    np.testing.assert_allclose(a.points, b.points, atol=1e-6)
+    # tracked crops keep the blobs well inside and turn with them (angle of landmark 0 -> 1 of the
+    # previous frame, smoothed), lagging the motion by about a frame
+    from capture.detector.crop import Crop, frame_to_input
+
+    for t in range(40):
+        q = frame_to_input(truth[t], Crop(*a.crops[t]), (96, 96))
+        assert q.min() > 10 and q.max() < 86, (t, q)
+    np.testing.assert_allclose(a.crops[1:16, 3], 1.5 * np.arange(0, 15), atol=2.0)
+
+
+def test_reader_applies_rotation_metadata(tmp_path):
+    """An MP4 whose track matrix says 'rotate 90 degrees' (as phones write) comes out upright."""
+    import struct
+
+    import cv2
+
+    src = tmp_path / "plain.mp4"
+    w = cv2.VideoWriter(str(src), cv2.VideoWriter_fourcc(*"mp4v"), 25, (160, 120))
+    frame = np.zeros((120, 160, 3), np.uint8)
+    frame[10:30, 10:50] = 255
+    for _ in range(3):
+        w.write(frame)
+    w.release()
+    data = bytearray(src.read_bytes())
+    m = data.find(b"tkhd") + 4 + 40  # version-0 track header: the 3x3 matrix follows 40 bytes of fields
+    assert struct.unpack(">9i", data[m:m + 36]) == (0x10000, 0, 0, 0, 0x10000, 0, 0, 0, 0x40000000)
+    data[m:m + 36] = struct.pack(">9i", 0, 0x10000, 0, -0x10000, 0, 0, 0, 0, 0x40000000)
+    rotated = tmp_path / "rotated.mp4"
+    rotated.write_bytes(bytes(data))
+    with open_video(rotated) as r:
+        assert (r.info.rotation_deg, r.info.width, r.info.height, r.info.frame_count) == (90, 120, 160, 3)
+        _, f = next(r.frames())
+    assert f.shape == (160, 120, 3)
+    ys, xs = np.nonzero(f[:, :, 0] > 128)
+    # 90 degrees clockwise: row r, column c -> row c, column (120 - 1 - r)
+    assert (ys.min(), ys.max(), xs.min(), xs.max()) == (10, 49, 90, 109)
+
+
+def test_query_detector_on_video_and_cache_key(tmp_path):
+    _moving_blobs_video(tmp_path / "blobs.avi", n=6)
+    spec = S.detector_spec(name="q", kind="query", query={"name": "points"}, first_frame="full_frame", track=False)
+    det = Detector.load(S.save_detector(S.query_model(3), spec, tmp_path, "q"))
+    q1 = np.array([[10.0, 20.0, 0.0], [30.0, 40.0, 1.0], [50.0, 60.0, 2.0]])
+    a = detect_video(tmp_path / "blobs.avi", det, tmp_path / "out", progress=False, query_points=q1)
+    # full frame 320x240 letterboxed into 64x64: 5 frame px per input px, top band of 40 px
+    np.testing.assert_allclose(a.points[0], (q1[:, :2] + 0.5) * 5.0 - 0.5 - [0.0, 40.0], atol=1e-4)
+    b = detect_video(tmp_path / "blobs.avi", det, tmp_path / "out", progress=False, query_points=q1 + 1.0)
+    assert b.cached_frames == 0 and len(list((tmp_path / "out" / "detections").iterdir())) == 2
+    np.testing.assert_allclose(b.points - a.points, 5.0, atol=1e-4)
+    with pytest.raises(CaptureError, match="needs the actor's template points"):
+        detect_video(tmp_path / "blobs.avi", det, None, progress=False)
