@@ -1,0 +1,233 @@
+"""Fitting a frozen actor to a sequence of frames: the paper's neurally reparameterised solve (Sec. 4.2).
+
+Unknowns per frame j: head transform T_g, jaw transform T_b and spatially varying expression
+coefficients w(c). They are not optimised directly: frame codes ``z_j`` are, together with two
+small GELU MLPs, ``F_T(z_j) -> [T_g, T_b]`` (6D rotation + translation each) and
+``F_W(z_j, c) -> w_j(c)``. The face is
+
+    s*(c) = T_g( LBS(s0(c), T_b, k(c)) + sum_i w_i(c) E_i(c) )
+
+with ``s0, k, E`` queried from the frozen actor once at the points being fitted
+(:class:`ActorAtPoints`), never per iteration. Losses: 2D position through the calibrated camera
+(confidence-weighted, optionally robust), or 3D position; coefficient L2; temporal
+``||z_j - z_{j-1}||^2``.
+
+Units: lengths in the losses are divided by ``length_unit_mm`` (10 mm), as in actor learning;
+2D residuals are in pixels. The paper's coefficient weight 0.75 over-regularises with faces in
+these units (a perfect model plateaus near 0.09 mm in 3D, DESIGN.md measured notes), so the
+default preset uses 0.0075; the ``paper`` preset keeps 0.75.
+
+The fitter owns every per-frame parameter (:class:`SequenceFit`); the actor model stays frozen.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import torch
+from torch import nn
+
+from calib.projection import project_points
+from models.checks import check_shapes
+from models.lbs import lbs_jaw
+from models.rotation import IDENTITY_6D, apply_rigid, rot6d_to_matrix
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Settings of one sequence fit (saved with every run)."""
+
+    iterations: int = 500
+    lr: float = 5e-3
+    lr_final_fraction: float = 0.1
+    """Cosine decay to this fraction of ``lr``; 1.0 keeps it constant (the paper)."""
+    code_dim: int = 32
+    hidden: int = 128
+    coeff_weight: float = 0.0075
+    temporal_weight: float = 0.05
+    length_unit_mm: float = 10.0
+    robust_px: float = 3.0
+    """Scale of the pseudo-Huber 2D loss in pixels (quadratic below, linear above); 0 = squared."""
+    seed: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+FIT_PRESETS: dict[str, FitSettings] = {
+    "default": FitSettings(),
+    "paper": FitSettings(iterations=10_000, lr=1e-3, lr_final_fraction=1.0, coeff_weight=0.75, robust_px=0.0),
+}
+
+
+@dataclass
+class ActorAtPoints:
+    """The frozen actor evaluated once at P template points (mm)."""
+
+    points: torch.Tensor        # (P, 3) template points c
+    neutral: torch.Tensor       # (P, 3) s0
+    skin_weight: torch.Tensor   # (P,) k
+    expressions: torch.Tensor   # (P, E, 3) expression basis
+    jaw_pivot: torch.Tensor     # (3,)
+    center: torch.Tensor        # (3,) template normalisation, for F_W's input
+    scale: float
+
+    @classmethod
+    @torch.no_grad()
+    def query(cls, model, points: torch.Tensor) -> "ActorAtPoints":
+        """Evaluate ``model`` (an :class:`~models.aim.AnatomicalFaceModel`) at ``points (P, 3)``."""
+        a = model(points)
+        return cls(points=points, neutral=a.neutral, skin_weight=a.skin_weight, expressions=a.expressions,
+                   jaw_pivot=model.jaw_pivot, center=model.center, scale=float(model.config.scale))
+
+    @property
+    def n_expressions(self) -> int:
+        return self.expressions.shape[1]
+
+
+def pose_face(actor: ActorAtPoints, head_R: torch.Tensor, head_t: torch.Tensor, jaw_R: torch.Tensor,
+              jaw_t: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
+    """``s* = T_g(LBS(s0, T_b, k) + sum_i w_i E_i)`` for J frames.
+
+    Args: head_R, jaw_R ``(J, 3, 3)``; head_t, jaw_t ``(J, 3)`` mm; coeffs ``(J, P, E)``.
+    Returns: ``(J, P, 3)`` points in the camera frame (mm) when T_g maps head to camera.
+    """
+    check_shapes({"coeffs": (coeffs, "J,P,E"), "expressions": (actor.expressions, "P,E,3")})
+    J = coeffs.shape[0]
+    skinned = lbs_jaw(actor.neutral.expand(J, -1, -1), actor.skin_weight.expand(J, -1), jaw_R, jaw_t,
+                      actor.jaw_pivot)
+    local = skinned + torch.einsum("jpe,pec->jpc", coeffs, actor.expressions)
+    return apply_rigid(local, head_R, head_t)
+
+
+class GeluMLP(nn.Module):
+    """Four linear layers with GELU between them; the last layer starts at zero output."""
+
+    def __init__(self, n_in: int, n_out: int, hidden: int):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(n_in, hidden), nn.GELU(), nn.Linear(hidden, hidden), nn.GELU(),
+                                 nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, n_out))
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+@dataclass
+class FramePose:
+    """Per-frame parameters (J frames)."""
+
+    head_R: torch.Tensor   # (J, 3, 3) head (template frame) -> camera
+    head_t: torch.Tensor   # (J, 3) mm
+    jaw_R: torch.Tensor    # (J, 3, 3) jaw about the actor's jaw pivot
+    jaw_t: torch.Tensor    # (J, 3) mm
+
+
+class SequenceFit(nn.Module):
+    """Frame codes, F_T and F_W for J frames: the fitter's state.
+
+    ``F_T`` predicts a correction on top of an initial head pose per frame (for example a PnP
+    estimate), so a zero output - the state at initialisation - is that pose with the jaw at rest.
+    """
+
+    def __init__(self, n_frames: int, n_expressions: int, settings: FitSettings,
+                 head_R0: torch.Tensor, head_t0: torch.Tensor):
+        super().__init__()
+        check_shapes({"head_R0": (head_R0, "J,3,3"), "head_t0": (head_t0, "J,3")})
+        g = torch.Generator().manual_seed(settings.seed)
+        self.settings = settings
+        self.codes = nn.Parameter(0.01 * torch.randn(n_frames, settings.code_dim, generator=g).to(head_t0))
+        self.F_T = GeluMLP(settings.code_dim, 18, settings.hidden).to(head_t0)
+        self.F_W = GeluMLP(settings.code_dim + 3, n_expressions, settings.hidden).to(head_t0)
+        self.register_buffer("head_R0", head_R0.clone())
+        self.register_buffer("head_t0", head_t0.clone())
+        self.register_buffer("eye6", torch.tensor(IDENTITY_6D).to(head_t0))
+
+    def poses(self) -> FramePose:
+        out = self.F_T(self.codes)
+        unit = self.settings.length_unit_mm
+        dR = rot6d_to_matrix(self.eye6 + out[:, 0:6])
+        head_R = self.head_R0 @ dR
+        head_t = self.head_t0 + unit * out[:, 6:9]
+        jaw_R = rot6d_to_matrix(self.eye6 + out[:, 9:15])
+        jaw_t = unit * out[:, 15:18]
+        return FramePose(head_R, head_t, jaw_R, jaw_t)
+
+    def coefficients(self, actor: ActorAtPoints, points: torch.Tensor | None = None) -> torch.Tensor:
+        """``w_j(c)`` ``(J, P, E)`` at ``points`` (default: the actor's points)."""
+        c = actor.points if points is None else points
+        x = (c - actor.center) / actor.scale
+        J, P = self.codes.shape[0], c.shape[0]
+        inp = torch.cat([self.codes[:, None, :].expand(J, P, -1), x[None].expand(J, P, 3)], dim=-1)
+        return self.F_W(inp)
+
+
+@dataclass
+class Observations:
+    """What a sequence is fitted to: 2D landmarks (with a camera) or 3D points."""
+
+    points2d: torch.Tensor | None = None   # (J, P, 2) pixels; NaN where missing
+    weights: torch.Tensor | None = None    # (J, P) confidence in [0, 1]; 0 where missing
+    K: torch.Tensor | None = None          # (3, 3)
+    dist: torch.Tensor | None = None       # (D,)
+    points3d: torch.Tensor | None = None   # (J, P, 3) mm, camera frame
+
+
+def fitting_losses(fit: SequenceFit, actor: ActorAtPoints, obs: Observations) -> dict[str, torch.Tensor]:
+    """The weighted loss terms of the fitting energy; key ``total`` sums them."""
+    s = fit.settings
+    pose = fit.poses()
+    w = fit.coefficients(actor)
+    face = pose_face(actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t, w)
+    terms: dict[str, torch.Tensor] = {}
+    if obs.points2d is not None:
+        uv = project_points(face, obs.K, obs.dist)
+        valid = torch.isfinite(obs.points2d).all(-1)
+        weight = (obs.weights if obs.weights is not None else valid.to(face.dtype)) * valid
+        r2 = (uv - torch.nan_to_num(obs.points2d)).square().sum(-1)
+        if s.robust_px > 0:
+            c2 = s.robust_px ** 2
+            r2 = 2 * c2 * (torch.sqrt(1 + r2 / c2) - 1)  # pseudo-Huber: r^2 near 0, 2c|r| far
+        terms["2d"] = (weight * r2).sum() / weight.sum().clamp_min(1e-12)
+    if obs.points3d is not None:
+        terms["3d"] = ((face - obs.points3d) / s.length_unit_mm).square().sum(-1).mean()
+    terms["coeff"] = s.coeff_weight * w.square().mean()
+    if fit.codes.shape[0] > 1:
+        terms["temporal"] = s.temporal_weight * (fit.codes[1:] - fit.codes[:-1]).square().sum(-1).mean()
+    terms["total"] = sum(terms.values())
+    return terms
+
+
+@dataclass
+class FitResult:
+    fit: SequenceFit
+    losses: list[float]
+    seconds: float
+
+
+def fit_sequence(actor: ActorAtPoints, obs: Observations, settings: FitSettings, head_R0: torch.Tensor,
+                 head_t0: torch.Tensor, warm_start: dict | None = None, callback=None) -> FitResult:
+    """Fit J frames; ``warm_start`` is a :class:`SequenceFit` state dict of the same size to start from."""
+    torch.manual_seed(settings.seed)
+    fit = SequenceFit(head_R0.shape[0], actor.n_expressions, settings, head_R0, head_t0)
+    if warm_start is not None:
+        fit.load_state_dict(warm_start)
+    opt = torch.optim.Adam(fit.parameters(), lr=settings.lr)
+    f = settings.lr_final_fraction
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda it: 1.0 if f >= 1 else f + (1 - f) * 0.5 * (1 + math.cos(math.pi * min(it / settings.iterations, 1))))
+    history = []
+    t0 = time.perf_counter()
+    for it in range(settings.iterations):
+        terms = fitting_losses(fit, actor, obs)
+        opt.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        opt.step()
+        sched.step()
+        history.append(float(terms["total"].detach()))
+        if callback is not None:
+            callback(it, terms)
+    return FitResult(fit=fit, losses=history, seconds=time.perf_counter() - t0)
