@@ -1,5 +1,7 @@
 """The sequence fit: float64 gradient check of the fitting energy, and known answers in 3D and 2D."""
 
+from dataclasses import replace
+
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
@@ -91,3 +93,28 @@ def test_2d_fit_reprojects_the_truth():
         pred = pose_face(actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t, res.fit.coefficients(actor))
         rms = (project_points(pred, K, DIST) - uv).square().sum(-1).mean().sqrt()
     assert rms < 0.1, rms  # pixels: noise-free landmarks are matched to a tenth of a pixel
+
+
+def test_split_first_layer_equals_concatenated_input():
+    """F_W's first layer is evaluated per frame and per point separately: same as on [z_j, c]."""
+    actor = toy_actor(P=20, E=3)
+    head_R, head_t, _ = truth(toy_actor(P=20, E=4), J=3)
+    fit = SequenceFit(3, 3, FitSettings(code_dim=5, hidden=16), head_R, head_t).double()
+    with torch.no_grad():
+        for p in fit.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+        x = (actor.points - actor.center) / actor.scale
+        inp = torch.cat([fit.codes[:, None].expand(3, 20, -1), x[None].expand(3, 20, 3)], -1)
+        torch.testing.assert_close(fit.coefficients(actor), fit.F_W(inp))
+        torch.testing.assert_close(fit.coefficients(actor, frames=slice(1, 2)), fit.F_W(inp[1:2]))
+
+
+def test_early_stop_and_iteration_override():
+    actor = toy_actor(P=30, E=2)
+    head_R, head_t, face = truth(toy_actor(P=30, E=4), J=2)
+    s = FitSettings(code_dim=4, hidden=8, iterations=1000, early_stop_tol=0.5, early_stop_every=10)
+    res = fit_sequence(actor, Observations(points3d=face), s, head_R, head_t)
+    assert 20 <= len(res.losses) < 1000  # stopped once the loss stopped halving per 10 iterations
+    res = fit_sequence(actor, Observations(points3d=face), replace(s, early_stop_tol=0.0), head_R, head_t,
+                       iterations=7)
+    assert len(res.losses) == 7

@@ -1,0 +1,146 @@
+"""Initial rigid head poses for a take: per-frame PnP on the landmarks, gaps interpolated, smoothed.
+
+Convention (as everywhere in the project): a head-frame (template-frame) point ``x`` maps to the
+camera frame by ``R @ x + t`` (column vectors, mm; OpenCV camera axes x right, y down, z forward).
+This is exactly OpenCV's ``rvec, tvec`` of :func:`cv2.solvePnP`, so no conversion is needed.
+
+The 3D model of the PnP is the actor's *neutral* at the landmarks' template points; expressions and
+the jaw are left to the sequence fit (its ``F_T`` corrects these poses).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial.transform import Rotation, Slerp
+
+
+@dataclass(frozen=True)
+class PnPSettings:
+    """How the initial poses are found (saved with the resolved fit settings)."""
+
+    min_weight_fraction: float = 0.5
+    """Points whose confidence is below this fraction of the frame's largest are not used."""
+    min_points: int = 6
+    ransac_px: float = 6.0
+    """RANSAC inlier threshold in pixels (wild detections are rejected before the LM refinement)."""
+    smooth_sigma_frames: float = 1.0
+    """Gaussian smoothing of the per-frame poses over time (0 = off)."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def pnp_frame(model_points: np.ndarray, points2d: np.ndarray, weights: np.ndarray, K: np.ndarray,
+              dist: np.ndarray, settings: PnPSettings = PnPSettings(),
+              guess: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """Head pose of one frame: ``(R (3,3), t (3,))`` or None when too few usable points.
+
+    Args:
+        model_points: ``(L, 3)`` head-frame points (mm); points2d ``(L, 2)`` px (NaN = missing);
+        weights ``(L,)`` confidence; K ``(3, 3)``; dist OpenCV coefficients; guess ``(rvec, tvec)``.
+    """
+    ok = np.isfinite(points2d).all(1) & np.isfinite(weights) & (weights > 0)
+    if ok.sum() < settings.min_points:
+        return None
+    ok &= weights >= settings.min_weight_fraction * weights[ok].max()
+    if ok.sum() < settings.min_points:
+        return None
+    obj = np.ascontiguousarray(model_points[ok], dtype=np.float64)
+    img = np.ascontiguousarray(points2d[ok], dtype=np.float64)
+    K = np.asarray(K, np.float64)
+    dist = np.asarray(dist, np.float64)
+    use_guess = guess is not None
+    rvec0 = guess[0].copy() if use_guess else None
+    tvec0 = guess[1].copy() if use_guess else None
+    found, rvec, tvec, inliers = cv2.solvePnPRansac(
+        obj, img, K, dist, rvec0, tvec0, useExtrinsicGuess=use_guess, iterationsCount=100,
+        reprojectionError=settings.ransac_px, confidence=0.999, flags=cv2.SOLVEPNP_EPNP if not use_guess
+        else cv2.SOLVEPNP_ITERATIVE)
+    if not found or inliers is None or len(inliers) < settings.min_points:
+        return None
+    idx = inliers[:, 0]
+    rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], K, dist, rvec, tvec)
+    R = cv2.Rodrigues(rvec)[0]
+    t = tvec.reshape(3)
+    if t[2] <= 0:  # the face is in front of the camera
+        return None
+    return R, t
+
+
+def interpolate_poses(R: np.ndarray, t: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fill frames where ``ok`` is False: slerp / linear between neighbours, held at the ends.
+
+    Args: R ``(T, 3, 3)``, t ``(T, 3)``, ok ``(T,)`` bool with at least one True.
+    """
+    T = len(ok)
+    good = np.flatnonzero(ok)
+    if len(good) == 0:
+        raise ValueError("no frame has a head pose to interpolate from")
+    frames = np.arange(T)
+    clipped = np.clip(frames, good[0], good[-1])
+    t_out = np.stack([np.interp(clipped, good, t[good, k]) for k in range(3)], 1)
+    if len(good) == 1:
+        R_out = np.broadcast_to(R[good[0]], (T, 3, 3)).copy()
+    else:
+        R_out = Slerp(good, Rotation.from_matrix(R[good]))(clipped).as_matrix()
+    return R_out, t_out
+
+
+def smooth_poses(R: np.ndarray, t: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian smoothing over time of rotations (sign-aligned quaternions) and translations."""
+    if sigma <= 0 or len(t) < 2:
+        return R, t
+    q = Rotation.from_matrix(R).as_quat()
+    for j in range(1, len(q)):  # one hemisphere, so that averaging neighbours is meaningful
+        if np.dot(q[j], q[j - 1]) < 0:
+            q[j] = -q[j]
+    q = gaussian_filter1d(q, sigma, axis=0, mode="nearest")
+    t = gaussian_filter1d(t, sigma, axis=0, mode="nearest")
+    return Rotation.from_quat(q / np.linalg.norm(q, axis=1, keepdims=True)).as_matrix(), t
+
+
+def initial_head_poses(model_points: np.ndarray, points2d: np.ndarray, weights: np.ndarray, K: np.ndarray,
+                       dist: np.ndarray, settings: PnPSettings = PnPSettings()
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-frame PnP, interpolated over failures, smoothed: ``(R (T,3,3), t (T,3), found (T,) bool)``.
+
+    Args:
+        model_points: ``(L, 3)`` the actor's neutral at the landmarks' template points (mm).
+        points2d: ``(T, L, 2)`` px, NaN where missing; weights ``(T, L)`` (0 for frames without a face).
+    Raises ValueError when no frame has enough landmarks.
+    """
+    T, L = points2d.shape[:2]
+    if model_points.shape != (L, 3) or weights.shape != (T, L):
+        raise ValueError(f"expected model_points ({L}, 3) and weights ({T}, {L}) for points2d {points2d.shape}; "
+                         f"got {model_points.shape} and {weights.shape}")
+    R = np.tile(np.eye(3), (T, 1, 1))
+    t = np.zeros((T, 3))
+    found = np.zeros(T, bool)
+    guess = None
+    for j in range(T):
+        res = pnp_frame(model_points, points2d[j], weights[j], K, dist, settings, guess)
+        if res is None and guess is not None:  # a bad guess must not lose the frame
+            res = pnp_frame(model_points, points2d[j], weights[j], K, dist, settings, None)
+        if res is not None:
+            R[j], t[j] = res
+            found[j] = True
+            guess = (cv2.Rodrigues(R[j])[0], t[j].reshape(3, 1).copy())
+    if not found.any():
+        raise ValueError("no frame has enough landmarks for a head pose (PnP failed everywhere)")
+    R, t = interpolate_poses(R, t, found)
+    R, t = smooth_poses(R, t, settings.smooth_sigma_frames)
+    return R, t, found
+
+
+def rigid_align(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid ``(R, t)`` with ``R @ src + t ~ dst`` (Kabsch); ``src, dst (N, 3)``."""
+    ms, md = src.mean(0), dst.mean(0)
+    H = (src - ms).T @ (dst - md)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, md - R @ ms
