@@ -13,7 +13,10 @@ import typer
 
 from calib.cli import calibrate_command
 from capture.actor_cli import actor_app
+from capture.demo import demo_command
 from capture.errors import CaptureError
+from capture.run import run_command
+from capture.run_fit3d import fit3d_command
 from capture.synth_cli import synth_command
 
 app = typer.Typer(
@@ -26,6 +29,9 @@ app = typer.Typer(
 app.add_typer(actor_app, name="actor")
 app.command("calibrate")(calibrate_command)
 app.command("synth")(synth_command)
+app.command("run")(run_command)
+app.command("fit3d")(fit3d_command)
+app.command("demo")(demo_command)
 
 
 def main(argv: list[str] | None = None) -> int:

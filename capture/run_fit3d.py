@@ -1,0 +1,171 @@
+"""``capture fit3d MESHES --actor A``: fit an actor to a registered 3D mesh sequence (offline scans).
+
+MESHES is a folder of OBJ/PLY meshes in the actor's topology (same vertex order), one per frame,
+sorted by file name. The fit (:func:`capture.fit_take.fit_meshes`) runs in resumable windows like
+``capture run``; the exports are the same (no overlay: there is no video) and ``report.json`` gives
+the mean 3D vertex distance (mm) to the given mesh per frame instead of a reprojection error.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+from capture.errors import CaptureError, Interrupted
+from capture.run_inputs import check_device, check_window, file_sha256, parse_formats, resolve_fit_settings
+from capture.run_report import error_stats, frame_table, print_summary
+from capture.run_stages import export_stage, fit_frames, iter_fits, run_fit_cached
+from capture.run_store import claim_run_dir, digest, write_run_json
+from capture.signals import sigterm_as_interrupt
+
+FIT3D_FORMATS = ("obj", "usd", "npz")
+
+
+@dataclass
+class Fit3dConfig:
+    """Settings of ``capture fit3d`` (saved resolved in run.json and report.json)."""
+
+    meshes: Path
+    actor: str
+    out: Path | None = None            # None: ./runs/<folder name>
+    units: str = "mm"
+    fps: float = 30.0
+    formats: tuple[str, ...] = FIT3D_FORMATS
+    preset: str = "default"
+    seed: int = 0
+    iterations: int | None = None
+    device: str = "cpu"
+    window: int = 30
+    overlap: int = 6
+    overwrite: bool = False
+    progress: bool = True
+    threads: int = 1
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["meshes"], d["out"] = str(self.meshes), None if self.out is None else str(self.out)
+        d["formats"] = list(self.formats)
+        return d
+
+
+def load_mesh_sequence(folder: Path, units: str, n_vertices: int) -> tuple[list[Path], np.ndarray]:
+    """The meshes of ``folder`` sorted by name -> (files, vertices (T, V, 3) mm); topology checked."""
+    from capture.meshes import MESH_SUFFIXES, load_mesh, units_scale
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CaptureError(f"mesh folder {folder} does not exist; give a folder of OBJ/PLY meshes")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
+    if not files:
+        raise CaptureError(f"no .obj or .ply meshes in {folder}")
+    scale = units_scale(units)
+    verts = []
+    for p in files:
+        m = load_mesh(p, scale, "mesh")
+        if len(m.vertices) != n_vertices:
+            raise CaptureError(f"mesh {p.name} has {len(m.vertices)} vertices but the actor's template has "
+                               f"{n_vertices}; fit3d needs meshes registered to the actor's topology")
+        verts.append(np.asarray(m.vertices))
+    return files, np.stack(verts)
+
+
+def fit3d_take(cfg: Fit3dConfig) -> dict:
+    from capture.actor_package import WEIGHTS, load_actor
+    from capture.export import ExportContext, ExportOptions
+    from capture.fit_take import fit_meshes
+    from capture.run import base_report, finish_report
+    from capture.video import video_identity
+
+    t_start = time.perf_counter()
+    check_window(cfg.window, cfg.overlap)
+    check_device(cfg.device)
+    if cfg.threads < 1:
+        raise CaptureError(f"--threads must be at least 1, got {cfg.threads}")
+    if "overlay" in cfg.formats:
+        raise CaptureError("--formats overlay needs a video; fit3d exports obj, ply, usd and npz")
+    if not cfg.fps > 0:
+        raise CaptureError(f"--fps must be positive, got {cfg.fps}")
+    settings = resolve_fit_settings(cfg.preset, cfg.seed, cfg.iterations)
+    actor = load_actor(cfg.actor, device=cfg.device)
+    files, meshes = load_mesh_sequence(cfg.meshes, cfg.units, len(actor.template.vertices))
+    out = Path(cfg.out) if cfg.out is not None else Path("runs") / Path(cfg.meshes).name
+    take_id = digest([[p.name, video_identity(p)] for p in files] + [cfg.units])
+    label = f"mesh sequence {Path(cfg.meshes).name} ({len(files)} meshes, id {take_id[:12]})"
+    weights_sha = file_sha256(Path(actor.path) / WEIGHTS)
+    resolved = {**cfg.to_dict(), "out": str(out), "fit_settings": settings.to_dict()}
+    fingerprints = {"meshes": take_id, "actor_weights_sha256": weights_sha}
+    claim_run_dir(out, take_id, label, cfg.overwrite)
+    write_run_json(out, take_id, label, resolved, fingerprints, "running")
+
+    key = {"kind": "fit3d", "fit_settings": settings.to_dict(), "window": cfg.window, "overlap": cfg.overlap,
+           "device": cfg.device, "actor_weights_sha256": weights_sha, "meshes": take_id}
+    fdir = out / "fit" / digest(key)[:16]
+    log: list[dict] = []
+    stage = "fit"
+    with sigterm_as_interrupt():
+        try:
+            run_fit_cached(fdir, key, len(meshes), lambda cache: fit_meshes(
+                actor, meshes, settings, window=cfg.window, overlap=cfg.overlap, cache_dir=cache,
+                device=cfg.device, threads=cfg.threads), "fit3d", cfg.progress, log)
+            frames = fit_frames(fdir)
+            stage = "export"
+            ctx = ExportContext(faces=np.asarray(actor.template.faces), fps=cfg.fps, image_size=(1, 1), camera=None,
+                                frame_count=len(frames), options=ExportOptions(),
+                                source=f"capture fit3d {Path(cfg.meshes).name}, actor {actor.name}")
+            export_stage(fdir, ctx, cfg.formats, {"fit": digest(key), "formats": list(cfg.formats), "fps": cfg.fps,
+                                                  "options": ExportOptions().__dict__},
+                         out, log=log, progress=cfg.progress)
+        except KeyboardInterrupt:
+            raise Interrupted(f"interrupted during {stage}; finished work is kept in {out}: run the same "
+                              f"command to resume") from None
+    from capture.run import FrameSummary, _finite
+
+    fits = [FrameSummary(int(f.frame), str(f.status), _finite(getattr(f, "error3d_mm", None)))
+            for f in iter_fits(fdir)]
+    errors = [f.error for f in fits]
+    rows, skipped = frame_table(fits, "error3d_mm", errors, {})
+    for r, p in zip(rows, files):
+        r["mesh"] = p.name
+    report = base_report("capture fit3d", out, resolved, log, t_start)
+    report.update({"meshes": {"folder": str(cfg.meshes), "count": len(files), "identity": take_id, "units": cfg.units},
+                   "actor": {"name": actor.name, "path": str(actor.path)}, "camera": None,
+                   "frames": {"requested": len(files), "first": 0, "last": len(files) - 1,
+                              "fitted": len(rows) - len(skipped), "skipped": len(skipped)},
+                   "error": {"kind": "3D vertex error", "unit": "mm", **error_stats(errors)},
+                   "skipped_frames": skipped, "per_frame": rows, "notes": []})
+    finish_report(report, rows, "error3d_mm", out)
+    if len(fits) != len(files):
+        raise CaptureError(f"only {len(fits)} of {len(files)} meshes were fitted; see report.json and rerun")
+    write_run_json(out, take_id, label, resolved, fingerprints, "done")
+    return report
+
+
+def fit3d_command(
+    meshes: Path = typer.Argument(..., help="Folder of registered OBJ/PLY meshes in the actor's topology, one per "
+                                  "frame, in file-name order."),
+    actor: str = typer.Option(..., "--actor", help="Actor name or folder."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default ./runs/<folder name>)."),
+    units: str = typer.Option("mm", "--units", help="Units of the meshes: mm, cm, m, in."),
+    fps: float = typer.Option(30.0, "--fps", help="Frame rate of the sequence (USD time samples)."),
+    formats: Optional[str] = typer.Option(None, "--formats", help="Exports: obj, ply, usd, npz (default obj,usd,npz)."),
+    preset: str = typer.Option("default", "--preset", help="Fit preset: default or paper."),
+    seed: int = typer.Option(0, "--seed", help="Random seed of the fit."),
+    iterations: Optional[int] = typer.Option(None, "--iterations", help="Fit iterations of the first window "
+                                             "(default: the preset's; later windows use at most as many)."),
+    threads: int = typer.Option(1, "--threads", help="CPU threads of the fit (raise it on a dedicated machine)."),
+    device: str = typer.Option("cpu", "--device", help="Torch device (cpu, cuda)."),
+    window: int = typer.Option(30, "--window", help="Frames per fitting window."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the run in --out."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
+) -> None:
+    """Fit an actor to a registered 3D mesh sequence (offline reprocessing of scans)."""
+    cfg = Fit3dConfig(meshes=meshes, actor=actor, out=out, units=units, fps=fps,
+                      formats=parse_formats(formats, FIT3D_FORMATS), preset=preset, seed=seed, iterations=iterations,
+                      threads=threads, device=device,
+                      window=window, overlap=min(6, max(0, window // 5)), overwrite=overwrite, progress=progress)
+    print_summary(fit3d_take(cfg))

@@ -1,0 +1,109 @@
+"""``report.json`` of a run and the one-screen summary printed at the end.
+
+The report holds per-frame errors (reprojection in pixels for video, 3D in mm for fit3d), the skipped
+frames and why, timings per stage (``status: skipped`` when a stage found its work done), versions,
+the resolved settings and the camera's provenance (including the default-camera flag).
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from capture.atomic import write_json
+
+REPORT_JSON = "report.json"
+
+
+def versions() -> dict:
+    import capture
+
+    out = {"python": platform.python_version(), "capture": capture.__version__}
+    for mod, key in (("torch", "torch"), ("onnxruntime", "onnxruntime"), ("cv2", "opencv"), ("numpy", "numpy")):
+        try:
+            out[key] = __import__(mod).__version__
+        except Exception:  # pragma: no cover - optional
+            out[key] = None
+    return out
+
+
+def _num(v) -> float | None:
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def frame_table(fits: Sequence[Any], error_key: str, errors: Sequence[float | None],
+                skip_reasons: dict[int, str]) -> tuple[list[dict], list[dict]]:
+    """Per-frame rows and the skipped frames with their reason.
+
+    A frame is skipped when it has a reason in ``skip_reasons`` (no face found) or the fit says so.
+    Such a frame is not fitted to any detection; when the fit bridged it (``status: bridged``: the
+    temporal prior carries the neighbours' motion through it) its mesh is still exported, and the
+    skipped entry says so.
+    """
+    rows, skipped = [], []
+    for f, e in zip(fits, errors):
+        i = int(f.frame)
+        status = str(getattr(f, "status", "fitted"))
+        reason = skip_reasons.get(i)
+        rows.append({"frame": i, "status": status, error_key: _num(e), "face_found": i not in skip_reasons})
+        if reason is not None or status == "skipped":
+            entry = {"frame": i, "reason": reason or "not fitted"}
+            if status == "bridged":
+                entry["output"] = "mesh bridged from the neighbouring frames by the temporal prior"
+            skipped.append(entry)
+    return rows, skipped
+
+
+def error_stats(values: Sequence[float | None]) -> dict:
+    v = np.array([x for x in values if x is not None and math.isfinite(x)], np.float64)
+    if v.size == 0:
+        return {"mean": None, "median": None, "max": None, "worst_frame": None}
+    return {"mean": float(v.mean()), "median": float(np.median(v)), "max": float(v.max())}
+
+
+def write_report(out_dir: Path, report: dict) -> Path:
+    return write_json(Path(out_dir) / REPORT_JSON, report)
+
+
+def summary_lines(report: dict) -> list[str]:
+    """The one-screen summary (plain text lines)."""
+    fr = report["frames"]
+    unit = report["error"]["unit"]
+    stats = report["error"]
+    lines = [f"{report['command']}: {fr['requested']} frames requested, {fr['fitted']} fitted, "
+             f"{fr['skipped']} skipped"]
+    if stats["mean"] is not None:
+        worst = stats.get("worst_frame")
+        which = f" ({stats['landmarks']} landmarks)" if stats.get("landmarks") else ""
+        lines.append(f"{report['error']['kind']}{which}: mean {stats['mean']:.2f} {unit}, worst {stats['max']:.2f} {unit}"
+                     + (f" (frame {worst})" if worst is not None else ""))
+    for s in report["skipped_frames"][:5]:
+        lines.append(f"  skipped frame {s['frame']}: {s['reason']}")
+    if len(report["skipped_frames"]) > 5:
+        lines.append(f"  ... {len(report['skipped_frames']) - 5} more skipped frames in report.json")
+    cam = report.get("camera")
+    if cam is not None and cam.get("is_default"):
+        lines.append("camera: DEFAULT GUESS (60 deg field of view, no distortion); pass --camera for accurate results")
+    for n in report.get("notes", []):
+        if n and not n.startswith("no --camera"):
+            lines.append(n)
+    t = ", ".join(f"{s['stage']} {s['status']} {s['seconds']:.1f}s" for s in report["stages"])
+    lines.append(f"stages: {t}")
+    lines.append(f"outputs in {report['out_dir']}: " + ", ".join(report["outputs"][:6])
+                 + (", ..." if len(report["outputs"]) > 6 else ""))
+    return lines
+
+
+def print_summary(report: dict) -> None:
+    from rich.console import Console
+    from rich.panel import Panel
+
+    Console(stderr=False).print(Panel("\n".join(summary_lines(report)), title="capture", expand=False))

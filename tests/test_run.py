@@ -1,0 +1,315 @@
+"""``capture run`` / ``capture fit3d`` end to end on the tiny actor and a tiny synthetic take.
+
+Outputs open in their readers, a rerun redoes nothing, a run killed part-way resumes to the same
+outputs, each bad input is one line and exit status 2 with nothing lost, a frame without a face is
+reported as skipped with exit status 0.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from capture.cli import main
+from capture.run_inputs import parse_frame_range, resolve_camera
+from tests.tiny_actor import write_tiny_actor_inputs
+
+REPO = Path(__file__).resolve().parents[1]
+FAST = ["--iterations", "20", "--window", "8", "--threads", "1", "--no-progress"]
+N_FRAMES = 20
+
+
+@pytest.fixture(scope="module")
+def take(tmp_path_factory):
+    """A tiny actor (100 iterations, width 64) and a 20-frame 320x240 synthetic take of it."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the test machine's cores are shared: one thread wastes least
+    root = tmp_path_factory.mktemp("run")
+    shapes, skull, jaw = write_tiny_actor_inputs(root)
+    actor = root / "actors" / "tiny"
+    assert main(["actor", "train", str(actor), "--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw),
+                 "--iterations", "100", "--width", "64", "--no-progress"]) == 0
+    out = root / "take"
+    assert main(["synth", "--actor", str(actor), "--out", str(out), "--frames", str(N_FRAMES), "--size", "320x240",
+                 "--preset", "talk", "--landmarks", "200", "--no-progress"]) == 0
+    yield root, actor, out
+    torch.set_num_threads(threads)
+
+
+def run_args(take_dir: Path, actor: Path, out: Path, *extra: str) -> list[str]:
+    return ["run", str(take_dir / "take.mp4"), "--actor", str(actor), "--camera", str(take_dir / "camera.json"),
+            "--out", str(out), *FAST, *extra]
+
+
+@pytest.fixture(scope="module")
+def full_run(take):
+    root, actor, take_dir = take
+    out = root / "run_full"
+    import capture.run_stages as stages
+
+    chunk, stages.FIT_CHUNK = stages.FIT_CHUNK, 8  # several stored chunks (the killed run below has one)
+    try:
+        assert main(run_args(take_dir, actor, out)) == 0
+    finally:
+        stages.FIT_CHUNK = chunk
+    assert len(json.loads(next(out.glob("fit/*/done.json")).read_text())["chunks"]) == 3
+    return out
+
+
+def _stages(out: Path) -> dict:
+    report = json.loads((out / "report.json").read_text())
+    return {s["stage"]: s for s in report["stages"]}
+
+
+def test_outputs_open_in_their_readers(take, full_run):
+    _, actor, take_dir = take
+    out = full_run
+    V = len(trimesh.load(actor / "template.ply", process=False).vertices)
+    meshes = sorted((out / "meshes").glob("frame_*.obj"))
+    assert len(meshes) == N_FRAMES
+    assert len(trimesh.load(meshes[3], process=False).vertices) == V
+    with np.load(out / "params.npz", allow_pickle=False) as p:
+        assert p["head_R"].shape == (N_FRAMES, 3, 3) and p["frame_index"].tolist() == list(range(N_FRAMES))
+        assert {"head_t_mm", "jaw_R", "jaw_t_mm", "codes", "coefficients_landmarks", "status"} <= set(p.files)
+    with np.load(out / "landmarks.npz", allow_pickle=False) as lm:
+        assert lm["points"].shape == (N_FRAMES, 200, 2) and lm["confidence"].shape == (N_FRAMES, 200)
+    assert (out / "overlay.mp4").stat().st_size > 0
+    try:
+        from pxr import Usd
+    except ImportError:
+        Usd = None
+    if Usd is not None:
+        usd = next(out.glob("take.usd*"))
+        stage = Usd.Stage.Open(str(usd))
+        mesh = next(p for p in stage.Traverse() if p.GetTypeName() == "Mesh")
+        assert len(mesh.GetAttribute("points").GetTimeSamples()) == N_FRAMES
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"] == {"requested": N_FRAMES, "first": 0, "last": N_FRAMES - 1, "fitted": N_FRAMES,
+                                "skipped": 0}
+    rms = [r["reprojection_rms_px"] for r in report["per_frame"]]
+    assert len(rms) == N_FRAMES and all(r is not None and 0 <= r < 50 for r in rms)
+    assert report["camera"]["is_default"] is False and report["camera"]["source"].endswith("camera.json")
+    assert {"python", "torch", "onnxruntime", "opencv", "capture"} <= set(report["versions"])
+    assert report["settings"]["fit_settings"]["iterations"] == 20
+    assert {s["stage"] for s in report["stages"]} == {"detect", "fit", "export"}
+    assert json.loads((out / "run.json").read_text())["status"] == "done"
+    # The fitted meshes are near the truth (a few mm for this tiny, briefly trained setup).
+    truth = np.load(take_dir / "truth_meshes.npz")["vertices"]
+    v = trimesh.load(meshes[10], process=False).vertices
+    assert np.linalg.norm(v - truth[10], axis=1).mean() < 10.0
+
+
+def test_rerun_does_nothing_and_a_changed_setting_redoes_what_it_affects(take, full_run, monkeypatch, capsys):
+    _, actor, take_dir = take
+    import capture.fit_take
+
+    def no_fit(*a, **k):
+        raise AssertionError("fit_take called on a rerun")
+
+    monkeypatch.setattr(capture.fit_take, "fit_take", no_fit)
+    before = {p: p.stat().st_mtime_ns for p in (full_run / "meshes").glob("*.obj")}
+    assert main(run_args(take_dir, actor, full_run)) == 0
+    st = _stages(full_run)
+    assert [st[k]["status"] for k in ("detect", "fit", "export")] == ["skipped"] * 3
+    assert st["detect"]["frames_detected"] == 0
+    assert {p: p.stat().st_mtime_ns for p in (full_run / "meshes").glob("*.obj")} == before
+    assert "20 fitted" in capsys.readouterr().out
+    # Other formats: only the export is redone (the fit is still not called).
+    assert main(run_args(take_dir, actor, full_run, "--formats", "ply,npz")) == 0
+    st = _stages(full_run)
+    assert st["fit"]["status"] == "skipped" and st["export"]["status"] == "done"
+    assert len(list((full_run / "meshes").glob("*.ply"))) == N_FRAMES
+    assert not list((full_run / "meshes").glob("*.obj"))  # the old export's files are replaced
+    assert main(run_args(take_dir, actor, full_run)) == 0  # back to the default formats for later tests
+    assert _stages(full_run)["fit"]["status"] == "skipped"
+
+
+def test_killed_run_resumes_to_the_same_outputs(take, full_run):
+    root, actor, take_dir = take
+    out = root / "run_killed"
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    args = run_args(take_dir, actor, out)
+    proc = subprocess.Popen([sys.executable, "-m", "capture.cli", *args], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 90
+        while time.time() < deadline and proc.poll() is None:
+            if list(out.glob("fit/*/windows/win_000000.npz")):
+                break
+            time.sleep(0.02)
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "run the same command to resume" in err.strip().splitlines()[-1]
+    assert not (out / "report.json").exists() and not list(out.glob("fit/*/done.json"))
+    assert main(args) == 0
+    st = _stages(out)
+    assert st["detect"]["status"] == "skipped"
+    with np.load(out / "params.npz") as a, np.load(full_run / "params.npz") as b:
+        for k in ("head_R", "head_t_mm", "jaw_R", "codes", "coefficients_landmarks"):
+            np.testing.assert_allclose(a[k], b[k], atol=1e-5, err_msg=k)
+    for name in ("frame_000000.obj", "frame_000019.obj"):
+        va = trimesh.load(out / "meshes" / name, process=False).vertices
+        vb = trimesh.load(full_run / "meshes" / name, process=False).vertices
+        np.testing.assert_allclose(va, vb, atol=2e-4)
+
+
+def _error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("capture: error: ")
+    return err[0]
+
+
+def test_bad_input_is_one_line_and_exit_2(take, full_run, tmp_path, capsys, monkeypatch):
+    _, actor, take_dir = take
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("CAPTURE_ACTORS", raising=False)
+    video = take_dir / "take.mp4"
+    cam = ["--camera", str(take_dir / "camera.json")]
+
+    def run(*args):
+        return main(["run", *[str(a) for a in args], *FAST])
+
+    (tmp_path / "text.mp4").write_text("not a video")
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    for bad in ("text.mp4", "empty.mp4", "missing.mp4"):
+        assert run(tmp_path / bad, "--actor", actor, *cam) == 2
+        assert "video" in _error(capsys)
+    assert run(video, "--actor", "nosuch", *cam) == 2
+    assert "unknown actor 'nosuch'" in _error(capsys)
+    # A camera of another aspect ratio; a pure resize is accepted and reported.
+    other = json.loads((take_dir / "camera.json").read_text())
+    other["image_size"] = [640, 360]
+    (tmp_path / "cam169.json").write_text(json.dumps(other))
+    assert run(video, "--actor", actor, "--camera", tmp_path / "cam169.json") == 2
+    assert "320x240" in _error(capsys)
+    other["image_size"] = [640, 480]
+    (tmp_path / "cam2x.json").write_text(json.dumps(other))
+    rc = resolve_camera(tmp_path / "cam2x.json", 320, 240)
+    assert rc.camera.image_size == (320, 240) and "resized" in rc.note
+    assert resolve_camera(None, 320, 240).camera.is_default
+    # Detector spec that does not match its model.
+    det = next((take_dir / "detector").glob("*.onnx"))
+    (tmp_path / "det").mkdir()
+    shutil.copy(det, tmp_path / "det" / det.name)
+    spec = json.loads(det.with_suffix(".json").read_text())
+    spec["input"]["size"] = [128, 128]
+    (tmp_path / "det" / det.with_suffix(".json").name).write_text(json.dumps(spec))
+    assert run(video, "--actor", actor, *cam, "--detector", tmp_path / "det" / det.name) == 2
+    assert "detector spec" in _error(capsys)
+    # No detector beside a copied video.
+    shutil.copy(video, tmp_path / "copy.mp4")
+    assert run(tmp_path / "copy.mp4", "--actor", actor, *cam) == 2
+    assert "--detector" in _error(capsys)
+    # An actor without the detector's landmark embedding.
+    bare = tmp_path / "bare_actor"
+    shutil.copytree(actor, bare)
+    shutil.rmtree(bare / "landmarks")
+    assert run(video, "--actor", bare, *cam) == 2
+    assert "landmark embedding" in (msg := _error(capsys)) and "make one" in msg
+    for frames in ("abc", "5:100", "10:5", "1:2:3"):
+        assert run(video, "--actor", actor, *cam, "--frames", frames) == 2
+        assert "--frames" in _error(capsys)
+    assert main(["run", str(video), "--actor", str(actor), "--formats", "obj,gif"]) == 2
+    assert "gif" in _error(capsys)
+    # An output folder that holds another take is refused; nothing in it is touched.
+    held = tmp_path / "held"
+    shutil.copytree(full_run, held, ignore=shutil.ignore_patterns("detections", "fit"))
+    run_json = json.loads((held / "run.json").read_text())
+    run_json["take_id"], run_json["take_label"] = "another", "other.mp4"
+    (held / "run.json").write_text(json.dumps(run_json))
+    files = sorted(p.relative_to(held) for p in held.rglob("*"))
+    assert run(video, "--actor", actor, *cam, "--out", held) == 2
+    assert "another take" in _error(capsys)
+    assert sorted(p.relative_to(held) for p in held.rglob("*")) == files
+    # --overwrite replaces that run (its meshes go, this take's outputs come).
+    assert run(video, "--actor", actor, *cam, "--out", held, "--frames", "0:8", "--formats", "npz", "--overwrite") == 0
+    capsys.readouterr()
+    assert not (held / "meshes").exists() and json.loads((held / "run.json").read_text())["take_id"] != "another"
+    with np.load(held / "params.npz") as p:
+        assert p["frame_index"].tolist() == list(range(8))
+    (tmp_path / "user").mkdir()
+    (tmp_path / "user" / "notes.txt").write_text("mine")
+    assert run(video, "--actor", actor, *cam, "--out", tmp_path / "user") == 2
+    assert "not empty" in _error(capsys)
+
+
+def test_frame_range_parsing():
+    assert parse_frame_range(None, 10) == (0, 10)
+    assert parse_frame_range("2:5", 10) == (2, 5)
+    assert parse_frame_range("3:", 10) == (3, 10)
+    assert parse_frame_range(":-2", 10) == (0, 8)
+
+
+def test_frames_without_a_face_are_reported_skipped(take, tmp_path):
+    from capture.synth.video import VideoWriter, read_frames
+
+    root, actor, take_dir = take
+    blank = tmp_path / "blank" / "take.mp4"
+    blank.parent.mkdir()
+    shutil.copytree(take_dir / "detector", blank.parent / "detector")
+    frames = list(read_frames(take_dir / "take.mp4"))[:12]
+    with VideoWriter(blank, (320, 240), 25.0) as w:
+        for i, f in enumerate(frames):
+            w.write(np.zeros_like(f) if i in (4, 5) else f)
+    out = tmp_path / "out"
+    assert main(["run", str(blank), "--actor", str(actor), "--camera", str(take_dir / "camera.json"),
+                 "--out", str(out), "--formats", "obj,npz", *FAST]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert [s["frame"] for s in report["skipped_frames"]] == [4, 5]
+    assert all("no face" in s["reason"] for s in report["skipped_frames"])
+    assert report["frames"]["requested"] == 12 and report["frames"]["skipped"] == 2
+
+
+def test_fit3d_on_truth_meshes(take, tmp_path):
+    _, actor, take_dir = take
+    z = np.load(take_dir / "truth_meshes.npz")
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for i in range(6):
+        trimesh.Trimesh(z["vertices"][i] / 10.0, z["faces"], process=False).export(folder / f"scan_{i:03d}.obj")
+    out = tmp_path / "fit3d"
+    assert main(["fit3d", str(folder), "--actor", str(actor), "--out", str(out), "--units", "cm",
+                 "--formats", "obj,npz", *FAST]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["error"]["kind"] == "3D vertex error" and report["error"]["unit"] == "mm"
+    assert report["frames"]["fitted"] == 6 and report["per_frame"][0]["mesh"] == "scan_000.obj"
+    assert 0 <= report["error"]["mean"] < 10.0
+    assert len(list((out / "meshes").glob("*.obj"))) == 6
+    assert main(["fit3d", str(folder), "--actor", str(actor), "--out", str(out), "--units", "cm",
+                 "--formats", "obj,npz", *FAST]) == 0
+    assert {s["status"] for s in json.loads((out / "report.json").read_text())["stages"]} == {"skipped"}
+
+
+def test_demo_flow_with_a_bundled_actor(take, tmp_path, monkeypatch, capsys):
+    """``capture demo`` end to end, with the tiny actor standing in for the bundled demo actor."""
+    import capture.demo as demo
+
+    _, actor, _ = take
+    monkeypatch.setattr(demo, "bundled_demo_actor", lambda: actor)
+    cfg = demo.DemoConfig(out=tmp_path / "demo", frames=10, size="320x240", landmarks=200, fit_iterations=20,
+                          window=8, progress=False)
+    result = demo.run_demo(cfg)
+    out = capsys.readouterr().out
+    assert "bundled pretrained demo actor" in out and "mean 3D vertex error" in out
+    assert 0 <= result["mean_3d_error_mm"] < 10.0 and result["mean_reprojection_px"] is not None
+    assert (tmp_path / "demo" / "run" / "report.json").is_file()
+    assert demo.run_demo(cfg)["mean_3d_error_mm"] == result["mean_3d_error_mm"]  # a rerun reuses everything
+    assert "reusing" in capsys.readouterr().out
