@@ -15,11 +15,10 @@ import hashlib
 import json
 import platform
 import shutil
-import signal
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 import numpy as np
 import torch
@@ -29,6 +28,7 @@ import capture
 from capture.actor_package import TRAINING_DIR, actor_dir, is_actor, remove_actor, save_actor
 from capture.atomic import atomic_path, write_bytes, write_json
 from capture.errors import CaptureError, Interrupted
+from capture.signals import sigterm_as_interrupt
 from capture.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
 from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
 from models.bone_estimate import estimate_bone_surface
@@ -96,23 +96,6 @@ def _fingerprint(files: list[Path], settings: dict) -> str:
         h.update(f.read_bytes())
     h.update(json.dumps(settings, sort_keys=True).encode())
     return h.hexdigest()
-
-
-@contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """Treat SIGTERM like Ctrl-C while training, so the checkpoint is saved before exiting."""
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _constraint_template_points(con: AnatomyConstraints, template: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -256,7 +239,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     last_ckpt = t0
     ev = None
     progress = progress or TrainingProgress(enabled=False)
-    with _sigterm_as_interrupt(), progress.session(settings.iterations, trainer.iteration) as update:
+    with sigterm_as_interrupt(), progress.session(settings.iterations, trainer.iteration) as update:
         try:
             while trainer.iteration < settings.iterations:
                 terms = trainer.step()

@@ -24,7 +24,7 @@ the trainer, per-frame parameters by the fitter.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn

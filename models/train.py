@@ -19,7 +19,7 @@ Presets (:data:`PRESETS`):
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 
 import torch
 
