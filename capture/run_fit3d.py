@@ -17,10 +17,10 @@ import numpy as np
 import typer
 
 from capture.errors import CaptureError, Interrupted
-from capture.run_inputs import check_device, check_window, file_sha256, parse_formats, resolve_fit_settings
+from capture.run_inputs import check_device, check_window, parse_formats, resolve_fit_settings
 from capture.run_report import error_stats, frame_table, print_summary
 from capture.run_stages import export_stage, fit_frames, iter_fits, run_fit_cached
-from capture.run_store import claim_run_dir, digest, write_run_json
+from capture.run_store import claim_run_dir, digest, file_sha256, write_run_json
 from capture.signals import sigterm_as_interrupt
 
 FIT3D_FORMATS = ("obj", "usd", "npz")

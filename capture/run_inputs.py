@@ -9,13 +9,13 @@ parses and lies in the video, ``--formats`` are known. Each problem is one
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from capture.errors import CaptureError
+from capture.run_store import digest, file_sha256
 
 DEFAULT_FORMATS = ("obj", "usd", "npz", "overlay")
 
@@ -81,14 +81,6 @@ def parse_frame_range(text: str | None, n_frames: int) -> tuple[int, int]:
         raise CaptureError(f"--frames {text} is outside the video's frames 0..{n_frames - 1} (or empty); "
                            f"give START:END with 0 <= START < END <= {n_frames}")
     return start, end
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def default_detector(video: Path) -> Path:
@@ -190,8 +182,6 @@ def check_window(window: int, overlap: int) -> None:
 
 def resolve_inputs(cfg: RunConfig) -> RunInputs:
     """Open and check every input of ``capture run``; nothing is written."""
-    import json
-
     from capture.actor_package import WEIGHTS, load_actor
     from capture.detector import Detector, embedded_points, read_embedding
     from capture.detector.embedding import embedding_path
@@ -226,5 +216,5 @@ def resolve_inputs(cfg: RunConfig) -> RunInputs:
                      frame_range=frame_range, actor=actor,
                      actor_weights_sha256=file_sha256(Path(actor.path) / WEIGHTS), camera=camera,
                      detector=detector, landmark_points=points,
-                     embedding_sha256=hashlib.sha256(json.dumps(emb.to_json(), sort_keys=True).encode()).hexdigest(),
+                     embedding_sha256=digest(emb.to_json()),
                      fit_settings=settings, notes=notes)

@@ -7,7 +7,6 @@ the truth is exactly representable; the fit sees the true landmarks plus 0.5 px 
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,10 +14,9 @@ import pytest
 import capture.fit_take as fit_take_mod
 from calib.camera_io import read_camera
 from capture.actor_package import load_actor
-from capture.cli import main
 from capture.fit_take import FrameFit, fit_meshes, fit_take, resolved_settings_dict, window_plan
 from models.fit import FIT_PRESETS
-from tests.tiny_actor import write_tiny_actor_inputs
+from tests.tiny_actor import synth_tiny_take, train_tiny_actor
 
 WINDOW, OVERLAP = 16, 4  # windows [0,16) [12,28) [24,40) [36,48): three borders in 48 frames
 SETTINGS = replace(FIT_PRESETS["default"], iterations=300, warm_iterations=100)
@@ -28,13 +26,8 @@ NO_FACE = [20, 21, 22]
 @pytest.fixture(scope="module")
 def take(tmp_path_factory):
     root = tmp_path_factory.mktemp("fit_take")
-    shapes, skull, jaw = write_tiny_actor_inputs(root)
-    actor_path = root / "actors" / "tiny"
-    assert main(["actor", "train", str(actor_path), "--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw),
-                 "--iterations", "100", "--width", "64", "--no-progress"]) == 0
-    out = root / "take"
-    assert main(["synth", "--actor", str(actor_path), "--out", str(out), "--frames", "48", "--size", "320x240",
-                 "--preset", "talk", "--landmarks", "200", "--no-progress"]) == 0
+    actor_path = train_tiny_actor(root)
+    out = synth_tiny_take(actor_path, root / "take", frames=48)
     actor = load_actor(str(actor_path))
     lm = np.load(out / "truth_landmarks.npz")
     tv, tf = np.asarray(actor.template.vertices), np.asarray(actor.template.faces)

@@ -22,7 +22,7 @@ import trimesh
 
 from capture.cli import main
 from capture.run_inputs import parse_frame_range, resolve_camera
-from tests.tiny_actor import write_tiny_actor_inputs
+from tests.tiny_actor import synth_tiny_take, train_tiny_actor
 
 REPO = Path(__file__).resolve().parents[1]
 FAST = ["--iterations", "20", "--window", "8", "--threads", "1", "--no-progress"]
@@ -37,13 +37,8 @@ def take(tmp_path_factory):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the test machine's cores are shared: one thread wastes least
     root = tmp_path_factory.mktemp("run")
-    shapes, skull, jaw = write_tiny_actor_inputs(root)
-    actor = root / "actors" / "tiny"
-    assert main(["actor", "train", str(actor), "--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw),
-                 "--iterations", "100", "--width", "64", "--no-progress"]) == 0
-    out = root / "take"
-    assert main(["synth", "--actor", str(actor), "--out", str(out), "--frames", str(N_FRAMES), "--size", "320x240",
-                 "--preset", "talk", "--landmarks", "200", "--no-progress"]) == 0
+    actor = train_tiny_actor(root)
+    out = synth_tiny_take(actor, root / "take", frames=N_FRAMES)
     yield root, actor, out
     torch.set_num_threads(threads)
 

@@ -56,3 +56,23 @@ def write_tiny_actor_inputs(root: Path, units_scale: float = 1.0, fmt: str = "pl
         paths.append(root / f"{name}.ply")
         part.export(paths[-1])
     return sdir, paths[0], paths[1]
+
+
+def train_tiny_actor(root: Path, iterations: int = 100, width: int = 64) -> Path:
+    """Write the inputs under ``root`` and train the tiny actor through the command line; its folder."""
+    from capture.cli import main
+
+    shapes, skull, jaw = write_tiny_actor_inputs(root)
+    actor = root / "actors" / "tiny"
+    assert main(["actor", "train", str(actor), "--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw),
+                 "--iterations", str(iterations), "--width", str(width), "--no-progress"]) == 0
+    return actor
+
+
+def synth_tiny_take(actor: Path, out: Path, frames: int, landmarks: int = 200) -> Path:
+    """A small synthetic take (320x240, talking preset) of ``actor`` through ``capture synth``."""
+    from capture.cli import main
+
+    assert main(["synth", "--actor", str(actor), "--out", str(out), "--frames", str(frames), "--size", "320x240",
+                 "--preset", "talk", "--landmarks", str(landmarks), "--no-progress"]) == 0
+    return out
