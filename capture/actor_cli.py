@@ -79,6 +79,26 @@ def train_command(
     _show(str(path), Console())
 
 
+@actor_app.command("edit")
+def edit_command(
+    actor: str = typer.Argument(..., help="Source actor name or folder."),
+    thickness_scale: float = typer.Option(..., "--thickness-scale", help="Factor on the learned soft-tissue thickness in the region (1 = unchanged, 1.3 = 30 % thicker)."),
+    region: Path = typer.Option(..., "--region", help="Painted region: vertex list (.json/.txt) or the template painted with vertex colours (.ply/.obj); see README."),
+    out: str = typer.Option(..., "--out", help="The new actor: a name (under $CAPTURE_ACTORS or ./actors) or a folder."),
+    falloff: float = typer.Option(10.0, "--falloff", help="Width (mm) of the smooth falloff around the region; 0 = hard edge."),
+    core: Optional[float] = typer.Option(None, "--core", help="Points within this distance (mm) of a painted vertex get its full weight (default: the template's mean edge length)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing actor --out."),
+) -> None:
+    """Scale the learned soft-tissue thickness in a painted region: a new actor whose neutral and expressions follow."""
+    from capture.actor_edit import EditOptions, edit_actor
+
+    console = Console(stderr=True)
+    path = edit_actor(EditOptions(actor=actor, out=out, thickness_scale=thickness_scale, region=region,
+                                  falloff_mm=falloff, core_mm=core, overwrite=overwrite),
+                      report=lambda m: console.print(m, highlight=False))
+    _show(str(path), Console())
+
+
 @actor_app.command("list")
 def list_command() -> None:
     """List the actors under $CAPTURE_ACTORS (or ./actors)."""
@@ -115,6 +135,10 @@ def _show(actor, console: Console) -> None:
     q, tr, con = meta["quality"], meta["training"], meta["anatomy_constraints"]
     console.print(f"[bold]{meta['name']}[/]  {meta['n_vertices']} vertices, {len(meta['shape_names'])} shapes "
                   f"(neutral '{meta['neutral']}'), units {meta['units']}, {actor_dir(str(actor))}")
+    from capture.actor_edit import edit_summary
+
+    if edit_summary(meta):
+        console.print(edit_summary(meta), highlight=False)
     table = Table("shape", "mean error mm", "max error mm", title="training error per shape")
     for name, e in q["per_shape"].items():
         table.add_row(name, f"{e['mean_mm']:.4f}", f"{e['max_mm']:.3f}")

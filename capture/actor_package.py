@@ -32,6 +32,7 @@ from safetensors.torch import load_file, save_file
 from capture.atomic import atomic_path, write_json
 from capture.errors import CaptureError
 from models.aim import AIMConfig, AnatomicalFaceModel
+from models.anatomy_edit import edits_from_state
 
 FORMAT_VERSION = 1
 ACTOR_JSON = "actor.json"
@@ -107,7 +108,9 @@ def load_actor(name: str, device: str | torch.device = "cpu") -> Actor:
     config = AIMConfig.from_dict(meta["model"])
     tensors = load_file(str(path / WEIGHTS), device=str(device))
     model = AnatomicalFaceModel(config).to(device)
-    model.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    state = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
+    model.thickness_edits.extend(e.to(device) for e in edits_from_state(state))  # an edited actor's edits
+    model.load_state_dict(state)
     model.eval().requires_grad_(False)
     template = trimesh.load(path / TEMPLATE, process=False, maintain_order=True, force="mesh")
     return Actor(path=path, metadata=meta, config=config, model=model, jaw_rot6d=tensors["jaw_rot6d"],

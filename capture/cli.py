@@ -16,6 +16,7 @@ from capture.actor_cli import actor_app
 from capture.demo import demo_command
 from capture.errors import CaptureError
 from capture.run import run_command
+from capture.retarget import retarget_command
 from capture.run_fit3d import fit3d_command
 from capture.synth_cli import synth_command
 
@@ -32,6 +33,7 @@ app.command("synth")(synth_command)
 app.command("run")(run_command)
 app.command("fit3d")(fit3d_command)
 app.command("demo")(demo_command)
+app.command("retarget")(retarget_command)
 
 
 def main(argv: list[str] | None = None) -> int:

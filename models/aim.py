@@ -15,7 +15,8 @@ Scaling (an implementation detail that keeps every network's output near unit si
 no function the model can represent): inputs are normalised to ``(c - center) / scale`` with the
 template's bounding box, so they lie in [-1, 1]; B predicts the bone point as an offset from c,
 ``b = c + bone_offset_mm * B(.)``; D and E are scaled by ``thickness_mm`` and ``expression_mm``;
-N is normalised to unit length. At initialisation b is close to c, d and E close to zero, so the
+N is normalised to unit length. An edited actor (``capture actor edit``) scales D by the
+factors of its ``thickness_edits`` (:mod:`models.anatomy_edit`). At initialisation b is close to c, d and E close to zero, so the
 model starts near the template.
 
 The model is stateless with respect to shapes and frames: per-shape jaw transforms are owned by
@@ -29,6 +30,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
+from models.anatomy_edit import ThicknessEdit
 from models.checks import check_shape
 from models.lbs import lbs_jaw
 from models.rotation import rot6d_to_matrix
@@ -99,6 +101,7 @@ class AnatomicalFaceModel(nn.Module):
         self.N = Siren(3, 3, **siren)
         self.K = Siren(3, 1, output_scale=0.1, **siren)
         self.E = Siren(3, 3 * config.n_expressions, output_scale=0.1, **siren)
+        self.thickness_edits = nn.ModuleList()  # anatomy edits (models/anatomy_edit.py); empty when learned
         self.register_buffer("center", torch.tensor(config.center, dtype=torch.float32))
         self.register_buffer("jaw_pivot", torch.tensor(config.jaw_pivot, dtype=torch.float32))
 
@@ -116,6 +119,8 @@ class AnatomicalFaceModel(nn.Module):
         x = self.normalize(c)
         bone = c + self.config.bone_offset_mm * self.B(x)
         thickness = self.config.thickness_mm * self.D(x).squeeze(-1)
+        for edit in self.thickness_edits:  # d' = d * (1 + (S - 1) w(c)), composed
+            thickness = thickness * edit(c)
         normal = torch.nn.functional.normalize(self.N(x), dim=-1, eps=1e-8)
         neutral = bone + thickness.unsqueeze(-1) * normal
         k = self.K(x).squeeze(-1)

@@ -24,13 +24,17 @@ JAW_PIVOT = np.array([0.0, 10.0, -20.0])
 JAW_DEG = 12.0
 
 
-def tiny_shapes() -> tuple[dict[str, np.ndarray], np.ndarray]:
+def tiny_shapes(proportions: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The shapes and triangles; ``proportions`` scales the face's width, height and depth (another identity
+    with the same expressions in correspondence: the regions move with the face)."""
     v, f = synthetic_face(n_th=35, n_ph=51)
-    x, y = v[:, 0], v[:, 1]
+    x, y = v[:, 0], v[:, 1]  # the regions of the expressions, in the unscaled face's coordinates
+    scale = np.asarray(proportions, np.float64)
+    v = v * scale
     k = np.clip((-30.0 - y) / 25.0, 0.0, 1.0)
     k = k * k * (3 - 2 * k)
     R = Rotation.from_euler("x", JAW_DEG, degrees=True).as_matrix()
-    moved = (v - JAW_PIVOT) @ R.T + JAW_PIVOT
+    moved = (v - JAW_PIVOT * scale) @ R.T + JAW_PIVOT * scale
     jaw = v + k[:, None] * (moved - v)
     smile = v.copy()
     for side in (-1.0, 1.0):
@@ -40,16 +44,17 @@ def tiny_shapes() -> tuple[dict[str, np.ndarray], np.ndarray]:
     return {"neutral": v, "jawOpen": jaw, "smile": smile, "browUp": brow}, f
 
 
-def write_tiny_actor_inputs(root: Path, units_scale: float = 1.0, fmt: str = "ply") -> tuple[Path, Path, Path]:
+def write_tiny_actor_inputs(root: Path, units_scale: float = 1.0, fmt: str = "ply",
+                            proportions: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> tuple[Path, Path, Path]:
     """Write the shapes (in units of ``1/units_scale`` mm) and bones; returns (shapes dir, skull, jaw)."""
-    shapes, f = tiny_shapes()
+    shapes, f = tiny_shapes(proportions)
     sdir = root / "shapes"
     sdir.mkdir(parents=True, exist_ok=True)
     for name, v in shapes.items():
         trimesh.Trimesh(v / units_scale, f, process=False).export(sdir / f"{name}.{fmt}")
     neutral = trimesh.Trimesh(shapes["neutral"], f, process=False)
     bone = trimesh.Trimesh(neutral.vertices - 8.0 * neutral.vertex_normals, f, process=False)
-    lower = bone.triangles_center[:, 1] < -35.0
+    lower = bone.triangles_center[:, 1] < -35.0 * proportions[1]
     paths = []
     for name, keep in (("skull", ~lower), ("jaw", lower)):
         part = bone.submesh([np.flatnonzero(keep)], append=True)
@@ -58,12 +63,13 @@ def write_tiny_actor_inputs(root: Path, units_scale: float = 1.0, fmt: str = "pl
     return sdir, paths[0], paths[1]
 
 
-def train_tiny_actor(root: Path, iterations: int = 100, width: int = 64) -> Path:
+def train_tiny_actor(root: Path, iterations: int = 100, width: int = 64, name: str = "tiny",
+                     proportions: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Path:
     """Write the inputs under ``root`` and train the tiny actor through the command line; its folder."""
     from capture.cli import main
 
-    shapes, skull, jaw = write_tiny_actor_inputs(root)
-    actor = root / "actors" / "tiny"
+    shapes, skull, jaw = write_tiny_actor_inputs(root, proportions=proportions)
+    actor = root / "actors" / name
     assert main(["actor", "train", str(actor), "--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw),
                  "--iterations", str(iterations), "--width", str(width), "--no-progress"]) == 0
     return actor
