@@ -86,7 +86,7 @@ def edit_command(
     region: Path = typer.Option(..., "--region", help="Painted region: vertex list (.json/.txt) or the template painted with vertex colours (.ply/.obj); see README."),
     out: str = typer.Option(..., "--out", help="The new actor: a name (under $CAPTURE_ACTORS or ./actors) or a folder."),
     falloff: float = typer.Option(10.0, "--falloff", help="Width (mm) of the smooth falloff around the region; 0 = hard edge."),
-    core: Optional[float] = typer.Option(None, "--core", help="Points within this distance (mm) of a painted vertex get its full weight (default: the template's mean edge length)."),
+    core: Optional[float] = typer.Option(None, "--core", help="Points within this distance (mm) of a painted vertex get its full weight (default: half the template's mean edge length)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing actor --out."),
 ) -> None:
     """Scale the learned soft-tissue thickness in a painted region: a new actor whose neutral and expressions follow."""

@@ -47,7 +47,7 @@ class EditOptions:
     thickness_scale: float
     region: Path
     falloff_mm: float = DEFAULT_FALLOFF_MM
-    core_mm: float | None = None       # None: the template's mean edge length
+    core_mm: float | None = None       # None: half the template's mean edge length
     overwrite: bool = False
 
     def to_dict(self) -> dict:
@@ -141,7 +141,7 @@ def edit_actor(opts: EditOptions, report=print) -> Path:
     template = src.template
     V = len(template.vertices)
     idx, mask = read_region(opts.region, V)
-    core = float(template.edges_unique_length.mean()) if opts.core_mm is None else float(opts.core_mm)
+    core = 0.5 * float(template.edges_unique_length.mean()) if opts.core_mm is None else float(opts.core_mm)
 
     verts = torch.as_tensor(np.asarray(template.vertices), dtype=torch.float32)
     edit = ThicknessEdit(verts[idx], torch.as_tensor(mask, dtype=torch.float32), float(opts.thickness_scale),
@@ -160,7 +160,7 @@ def edit_actor(opts: EditOptions, report=print) -> Path:
              "region_file": str(opts.region), "region_sha256": file_sha256(Path(opts.region)),
              "region_vertices": int(len(idx)), "region_soft": bool(np.any(mask < 1)),
              "falloff_mm": float(opts.falloff_mm), "core_mm": core,
-             "core_source": "template mean edge length" if opts.core_mm is None else "--core",
+             "core_source": "half the template's mean edge length" if opts.core_mm is None else "--core",
              "formula": "d'(c) = d(c) * (1 + (S - 1) w(c)), w(c) = max_i m_i (1 - smoothstep((|c - v_i| - core) / falloff))",
              "figures": figures, "settings": opts.to_dict(),
              "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")}

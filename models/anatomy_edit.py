@@ -12,8 +12,8 @@ with the scale S and a region weight w(c) in [0, 1] built from the painted templ
     w(c) = max_i  m_i * phi((|c - v_i| - h) / r),    phi(t) = 1 - smoothstep(clamp(t, 0, 1))
 
 * ``h`` (core, mm): points within h of a painted vertex get the vertex's full mask value, so points
-  inside painted triangles (landmarks) are scaled like the vertices around them; by default the
-  template's mean edge length.
+  inside painted triangles (landmarks at barycentric points) are scaled (nearly) like the vertices
+  around them; ``capture actor edit`` uses half the template's mean edge length by default.
 * ``r`` (falloff, mm): beyond the core the weight falls smoothly (C1) to zero over r mm; at
   ``|c - v_i| >= h + r`` from every painted vertex the thickness, and so the skin, is unchanged
   exactly (r = 0: a hard edge at h).
