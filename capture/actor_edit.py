@@ -198,7 +198,7 @@ def edit_summary(meta: dict) -> str | None:
     if not e:
         return None
     history = meta.get("edits", [])
-    chain = " <- ".join(x["source_actor"] for x in reversed(history)) if len(history) > 1 else e["source_actor"]
+    chain = " <- ".join([meta["name"]] + [x["source_actor"] for x in reversed(history)])
     return (f"EDITED from actor '{e['source_actor']}' ({e['source_path']}): thickness x{e['thickness_scale']:g} in "
             f"region {e['region_file']} ({e['region_vertices']} vertices{', soft mask' if e.get('region_soft') else ''}), "
             f"falloff {e['falloff_mm']:g} mm, core {e['core_mm']:.2f} mm; neutral moved up to "

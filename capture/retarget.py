@@ -232,7 +232,10 @@ def retarget_run(cfg: RetargetConfig) -> dict:
         raise CaptureError(f"--threads must be at least 1, got {cfg.threads}")
     src = read_source_run(cfg.run_dir)
     source_name = cfg.source_actor or src.settings["actor"]
-    a = load_actor(source_name, device=cfg.device)
+    try:
+        a = load_actor(source_name, device=cfg.device)
+    except CaptureError as exc:
+        raise CaptureError(f"the run's actor cannot be loaded ({exc}); give it with --source-actor") from None
     a_sha = file_sha256(Path(a.path) / WEIGHTS)
     if a_sha != src.run["fingerprints"].get("actor_weights_sha256"):
         raise CaptureError(f"actor '{source_name}' ({a.path}) is not the actor the run in {cfg.run_dir} was fitted with "

@@ -69,6 +69,7 @@ def window_vertices(state: dict, settings: FitSettings, actor: ActorAtPoints, pa
     """
     import numpy as np
 
+    state = {k: v.to(actor.points.device) for k, v in state.items()}
     J = state["codes"].shape[0]
     fit = SequenceFit(J, actor.n_expressions, settings, state["head_R0"], state["head_t0"])
     fit.load_state_dict(state)
