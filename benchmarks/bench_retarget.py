@@ -11,6 +11,13 @@ Prints wall times (edit; retarget per frame, against the run's fit per frame) an
     python benchmarks/bench_retarget.py                  # ~2 min on 2 cores (60-frame demo)
     python benchmarks/bench_retarget.py --quick          # checks that it runs (10 frames, few iterations)
     python benchmarks/bench_retarget.py --demo DIR       # reuse a finished capture demo --out DIR
+    python benchmarks/bench_retarget.py --ict            # also: a second ICT identity (trained here, ~10 min)
+
+``--ict`` makes a second ICT FaceKit identity (the sample identity's coefficients negated on the 100 identity
+modes; the same 19 expressions: ICT is linear, so each shape is the sample's shape plus the identity
+difference), learns it with estimated bones at reduced settings, retargets the demo run onto it and
+compares, in the head frame, with that actor posed with the take's known parameters (truth_params.npz):
+the retargeting error beside the demo actor's own fit error against its truth.
 """
 
 from __future__ import annotations
@@ -46,6 +53,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="10 frames, few fit iterations: checks that it runs")
     ap.add_argument("--demo", type=Path, help="a finished 'capture demo --out DIR' folder to reuse")
     ap.add_argument("--out", type=Path, help="working folder (default: a temporary one)")
+    ap.add_argument("--ict", action="store_true", help="also retarget onto a second ICT identity (trained here)")
     args = ap.parse_args()
 
     import torch
@@ -96,7 +104,69 @@ def main() -> None:
           f"{int((move > 0.01).sum())} (region + falloff {f['region']['vertices'] + f['falloff']['vertices']})")
     print(f"retarget onto the demo actor itself: {t_self:.2f} s; max difference to the run's meshes "
           f"{np.abs(same - ref).max():.5f} mm")
+    if args.ict:
+        ict_identity_check(work, demo, run, quick=args.quick)
     print(f"working folder: {work}")
+
+
+def _ict_identity_b(work: Path) -> Path:
+    """Shapes of a second ICT identity in the sample's topology (mm); returns the shapes folder."""
+    import trimesh
+
+    from capture.sample_data import sample_shapes_dir
+
+    z = np.load(Path(__file__).resolve().parents[2] / "shared" / "assets" / "ict_facekit" / "derived" /
+                "ict_facekit_light.npz", allow_pickle=False)
+    c1 = z["sample_identity_coeffs"][:100].astype(np.float64)
+    offset = 10.0 * np.tensordot(-2.0 * c1, z["identity_deltas"][:100].astype(np.float64), axes=1)  # id2 - id1, mm
+    out = work / "ict_b_shapes"
+    out.mkdir(parents=True, exist_ok=True)
+    for p in sorted(sample_shapes_dir().glob("*.ply")):
+        m = trimesh.load(p, process=False, maintain_order=True)
+        trimesh.Trimesh(np.asarray(m.vertices) + offset[:len(m.vertices)], m.faces, process=False).export(out / p.name)
+    return out
+
+
+def ict_identity_check(work: Path, demo: Path, run: Path, quick: bool) -> None:
+    import torch
+
+    from capture.actor_package import load_actor
+    from models.rotation import matrix_to_rot6d
+
+    shapes = _ict_identity_b(work)
+    b = work / "actors" / "ict_b"
+    t_train = 0.0
+    if not (b / "actor.json").is_file():
+        t_train = _cli(["actor", "train", str(b), "--shapes", str(shapes), "--width", "64", "--iterations",
+                        "60" if quick else "600", "--points-per-step", "2000", "--no-progress"])
+    t_rt = _cli(["retarget", str(run), "--to", str(b), "--out", str(work / "rt_ict"), "--formats", "obj",
+                 "--mesh-frame", "head", "--no-progress", "--overwrite"])
+    tp = np.load(demo / "take" / "truth_params.npz", allow_pickle=False)
+    frames = json.loads((run / "report.json").read_text())["per_frame"]
+    idx = [r["frame"] for r in frames]
+    errs = {}
+    for name, actor, folder in (("demo actor's own fit", demo / "actor", None), ("retargeted onto ICT identity 2", b,
+                                                                               work / "rt_ict" / "meshes")):
+        act = load_actor(str(actor))
+        assert list(tp["shape_names"]) == act.shape_names[1:], "the take's expressions must be the actor's"
+        v = torch.tensor(np.asarray(act.template.vertices), dtype=torch.float32)
+        with torch.no_grad():
+            truth = act.model.shape(act.model(v), matrix_to_rot6d(torch.tensor(tp["jaw_R"][idx], dtype=torch.float32)),
+                                    torch.tensor(tp["jaw_t"][idx], dtype=torch.float32),
+                                    torch.tensor(tp["coefficients"][idx], dtype=torch.float32)).numpy()
+        if folder is None:  # the run's camera-frame meshes, taken to the head frame with the run's head pose
+            with np.load(run / "params.npz", allow_pickle=False) as p:
+                got = np.einsum("tji,tvj->tvi", p["head_R"], _meshes(run / "meshes") - p["head_t_mm"][:, None])
+        else:
+            got = _meshes(folder)
+        e = np.linalg.norm(got - truth, axis=-1).mean(1)
+        motion = np.linalg.norm(truth - truth.mean(0), axis=-1).mean()
+        errs[name] = e
+        print(f"ICT check, {name}: head-frame mean vertex error {e.mean():.3f} mm (worst frame {e.max():.3f} mm; "
+              f"expression motion about the mean {motion:.2f} mm)")
+    meta = json.loads((b / "actor.json").read_text())
+    print(f"ICT identity 2: trained {t_train:.0f} s (mean training error {meta['quality']['mean_mm']:.3f} mm, "
+          f"estimated bones); retarget {t_rt:.1f} s for {len(idx)} frames")
 
 
 if __name__ == "__main__":

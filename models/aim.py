@@ -15,9 +15,9 @@ Scaling (an implementation detail that keeps every network's output near unit si
 no function the model can represent): inputs are normalised to ``(c - center) / scale`` with the
 template's bounding box, so they lie in [-1, 1]; B predicts the bone point as an offset from c,
 ``b = c + bone_offset_mm * B(.)``; D and E are scaled by ``thickness_mm`` and ``expression_mm``;
-N is normalised to unit length. An edited actor (``capture actor edit``) scales D by the
-factors of its ``thickness_edits`` (:mod:`models.anatomy_edit`). At initialisation b is close to c, d and E close to zero, so the
-model starts near the template.
+N is normalised to unit length. At initialisation b is close to c, d and E close to zero, so the
+model starts near the template. An edited actor (``capture actor edit``) multiplies d by the
+factors of its ``thickness_edits`` (:mod:`models.anatomy_edit`), functions of c like the networks.
 
 The model is stateless with respect to shapes and frames: per-shape jaw transforms are owned by
 the trainer, per-frame parameters by the fitter.
@@ -30,7 +30,6 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-from models.anatomy_edit import ThicknessEdit
 from models.checks import check_shape
 from models.lbs import lbs_jaw
 from models.rotation import rot6d_to_matrix
