@@ -210,7 +210,7 @@ def retargeted_fits(source: SourceRun, actor_points, part: str) -> Iterator:
 # ----------------------------------------------------------------------------------------- command
 def retarget_run(cfg: RetargetConfig) -> dict:
     """Retarget a finished run onto actor ``cfg.to``; returns the report (also ``OUT/report.json``)."""
-    from capture.actor_package import WEIGHTS, actor_dir, load_actor
+    from capture.actor_package import WEIGHTS, load_actor
     from capture.export import ExportContext, ExportOptions
     from capture.fit_take import _num_threads
     from capture.run import base_report
