@@ -110,7 +110,8 @@ def list_command() -> None:
     table = Table("actor", "shapes", "vertices", "mean error mm", "max error mm", "trained", "path")
     for a in actors:
         q = a.get("quality", {})
-        table.add_row(a.get("name", "?"), str(len(a.get("shape_names", []))) if "shape_names" in a else "-",
+        name = a.get("name", "?") + (f" (edit of {a['edit']['source_actor']})" if a.get("edit") else "")
+        table.add_row(name, str(len(a.get("shape_names", []))) if "shape_names" in a else "-",
                       str(a.get("n_vertices", "-")), f"{q['mean_mm']:.3f}" if "mean_mm" in q else "-",
                       f"{q['max_mm']:.3f}" if "max_mm" in q else "-", a.get("created", a.get("status", "-")), a["path"])
     console.print(table)

@@ -148,6 +148,27 @@ def test_retarget_onto_itself_reproduces_the_run(actors, fitted, tmp_path):
     assert np.abs(_meshes(out / "meshes") - _meshes(run / "meshes")).max() < 1e-4
 
 
+def test_retarget_a_video_run_with_all_its_outputs(actors, tmp_path):
+    """capture run on a synthetic take of A, then retarget to B with the run's formats (overlay included)."""
+    import av
+
+    from tests.tiny_actor import synth_tiny_take
+
+    _, a, b = actors
+    take = synth_tiny_take(a, tmp_path / "take", frames=8, landmarks=100)
+    run = tmp_path / "run"
+    assert main(["run", str(take / "take.mp4"), "--actor", str(a), "--camera", str(take / "camera.json"), "--out",
+                 str(run), "--iterations", "20", "--window", "8", "--threads", "1", "--no-progress"]) == 0
+    out = tmp_path / "on_b"
+    assert main(["retarget", str(run), "--to", str(b), "--out", str(out), "--no-progress"]) == 0
+    assert len(list((out / "meshes").glob("frame_*.obj"))) == 8 and (out / "take.usdc").is_file()
+    with av.open(str(out / "overlay.mp4")) as c:
+        assert sum(1 for _ in c.decode(video=0)) == 8
+    with np.load(run / "params.npz", allow_pickle=False) as p, np.load(out / "params.npz", allow_pickle=False) as q:
+        for k in ("frame_index", "head_R", "head_t_mm", "jaw_R", "jaw_t_mm", "codes", "status"):
+            assert np.array_equal(p[k], q[k]), k   # the played parameters are the run's
+
+
 def _error(capsys) -> str:
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("capture: error: "), err
