@@ -59,6 +59,6 @@ def test_detector_accuracy_on_decoded_video(actor, tmp_path, preset):
           f"({confident.sum()}/{v.sum()}), occluded mean confidence {c[~v].mean() if (~v).any() else 0:.3f}")
     assert np.median(e[v]) < 0.4  # measured 0.26 (frontal), 0.22 (yaw30)
     assert confident.sum() > 0.8 * v.sum()
-    assert rms < 1.0  # measured 0.58, 0.55: the 0.5 px goal is not met yet (grazing and kink outliers)
+    assert rms <= 0.5  # goal of issue 4
     if (~v).sum() > 10:
         assert c[~v].mean() < 0.3  # occluded landmarks are flagged

@@ -44,7 +44,7 @@ from capture.synth.detector_onnx import (LandmarkSet, build_detector, embedding_
                                          sample_landmarks, spec_dict)
 from capture.synth.motion import PRESETS, generate_motion, preset_dict
 from capture.synth.raster import Raster, rasterize, sample_nearest
-from capture.synth.texture import BACKGROUND, PositionCode
+from capture.synth.texture import BACKGROUND, PositionCode, dither_to_uint8
 from capture.synth.video import CODECS, DEFAULT_CRF, VideoWriter
 from models.rotation import matrix_to_rot6d, rot6d_to_matrix
 
@@ -187,7 +187,7 @@ def render_frame(vertices_cam: np.ndarray, faces: np.ndarray, colours: np.ndarra
     """Render one frame of the position-coded face and its landmark truth."""
     uv = scene.project(camera, vertices_cam)
     raster = rasterize(uv, vertices_cam[:, 2], faces, camera.image_size)
-    image = np.clip(np.rint(raster.interpolate(colours, faces, BACKGROUND)), 0, 255).astype(np.uint8)
+    image = dither_to_uint8(raster.interpolate(colours, faces, BACKGROUND))
     tri = vertices_cam[faces[landmarks.face_index]]                      # (L, 3, 3)
     p3 = np.einsum("lk,lkc->lc", landmarks.barycentric, tri)
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -243,7 +243,7 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
     colours = code.encode(tv)
     landmarks = sample_landmarks(template, cfg.landmarks, seed=0)
     name = detector_name(cfg.landmarks)
-    detector = build_detector(landmark_colours(colours, faces, landmarks), cfg.detector_size)
+    detector = build_detector(landmark_colours(colours, faces, landmarks), cfg.detector_size, code.levels_per_mm)
     onnx_bytes = export_onnx(detector)
     timings["detector_build_s"] = time.perf_counter() - t0
 
