@@ -81,6 +81,8 @@ class ColourCodeDetector(nn.Module):
         window: side of the centroid window (pixels, even).
         sigma1: colour width (levels) of the centroid weights.
         fit_window, fit_sigma: side (even) and Gaussian width (pixels) of the robust quadratic fit.
+        fit_stride: the fit reads every ``fit_stride``-th pixel of its window (crops of a face are
+            usually upsampled, so neighbouring crop pixels repeat each other).
         robust: colour residual scale (levels) of the fit's Cauchy weights; pixels that the local
             quadratic does not explain (another surface, an opening, the background) drop out.
         irls: reweighting passes of the robust fit.
@@ -96,7 +98,7 @@ class ColourCodeDetector(nn.Module):
     """
 
     def __init__(self, targets: np.ndarray, levels_per_mm=(1.0, 1.0, 1.0), size: int = 768, coarse: int = 8,
-                 window: int = 24, sigma1: float = 8.0, fit_window: int = 26, fit_sigma: float = 7.0,
+                 window: int = 24, sigma1: float = 8.0, fit_window: int = 26, fit_sigma: float = 7.0, fit_stride: int = 1,
                  robust: float = 3.0, irls: int = 3, tau: float = 4.0, min_inlier: float = 0.6,
                  min_cos: float = 0.15, near_sigma: float = 4.0, min_near: float = 0.8, background: float = 16.0,
                  channel_weights: tuple[float, float, float] = (1.0, 1.0, 0.1)):
@@ -112,7 +114,7 @@ class ColourCodeDetector(nn.Module):
         self.register_buffer("targets", t)                          # (L, 3)
         self.register_buffer("targets_sq", (t * t).sum(1))          # (L,)
         self.register_buffer("offsets1", self._offsets(window))     # (K1, 2) x, y
-        o = self._offsets(fit_window)
+        o = self._offsets(fit_window, fit_stride)
         self.register_buffer("offsets2", o)
         # quadratic design matrix in the window offsets scaled to [-1, 1] (K2, 6) (well conditioned),
         # the scales back to pixel units (6,) and the Gaussian spatial weights (K2,)
@@ -133,8 +135,11 @@ class ColourCodeDetector(nn.Module):
         self.register_buffer("mm_per_level", 1.0 / torch.as_tensor(np.asarray(levels_per_mm), dtype=torch.float32))
 
     @staticmethod
-    def _offsets(w: int) -> torch.Tensor:
-        r = torch.arange(w, dtype=torch.float32) - (w - 1) / 2.0     # half-integers, symmetric about 0
+    def _offsets(w: int, stride: int = 1) -> torch.Tensor:
+        """(K, 2) x, y offsets of a w x w window: half-integers symmetric about 0; every ``stride``-th
+        one outward from the centre (+-0.5, +-(0.5 + stride), ...)."""
+        h = torch.arange(0.5, w / 2.0, float(stride), dtype=torch.float32)
+        r = torch.cat([-h.flip(0), h])
         yy, xx = torch.meshgrid(r, r, indexing="ij")
         return torch.stack([xx.reshape(-1), yy.reshape(-1)], 1)
 
@@ -173,7 +178,7 @@ class ColourCodeDetector(nn.Module):
         N, L = w.shape[0], w.shape[1]
         G = (w @ self.design_outer).reshape(N, L, 6, 6)
         G = G + (1e-5 * (w.sum(-1) + 1e-3)).view(N, L, 1, 1) * torch.eye(6)   # against degenerate windows
-        B = torch.einsum("kj,nlk,nlkc->nljc", self.design, w, cols)
+        B = self.design.t() @ (w.unsqueeze(-1) * cols)                       # (N, L, 6, 3)
         return _cholesky_solve(G, B)
 
     def _quadratic(self, flat: torch.Tensor, centre: torch.Tensor):
@@ -192,7 +197,7 @@ class ColourCodeDetector(nn.Module):
         w = w0
         a = self._weighted_fit(cols, w)
         for _ in range(self.irls):
-            r2 = ((cols - torch.einsum("kj,nljc->nlkc", self.design, a)) ** 2).sum(-1)
+            r2 = ((cols - self.design @ a) ** 2).sum(-1)
             w = w0 / (1.0 + r2 / (self.robust ** 2))
             a = self._weighted_fit(cols, w)
         a = a * self.design_scale.view(6, 1)                                # coefficients in pixel units
