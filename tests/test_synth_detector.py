@@ -118,8 +118,10 @@ def test_occluder_flags_hidden_landmarks(actor, tmp_path):
     margin = 3.0
     hidden = v & (p[:, 0] > box[0] + margin) & (p[:, 0] < box[2] - 1 - margin) & (p[:, 1] > box[1] + margin) \
         & (p[:, 1] < box[3] - 1 - margin)
-    near = (p[:, 0] > box[0] - 12) & (p[:, 0] < box[2] + 12) & (p[:, 1] > box[1] - 12) & (p[:, 1] < box[3] + 12)
-    away = v & ~near & ~((p[:, 0] > src[0] - 12) & (p[:, 0] < src[2] + 12) & (p[:, 1] > src[1] - 12) & (p[:, 1] < src[3] + 12))
+    def within(b, pad):
+        return (p[:, 0] > b[0] - pad) & (p[:, 0] < b[2] + pad) & (p[:, 1] > b[1] - pad) & (p[:, 1] < b[3] + pad)
+
+    away = v & ~within(box, 12) & ~within(src, 12)     # neither under the patch nor where it comes from
     assert hidden.sum() > 10
     print(f"occluder: {hidden.sum()} hidden, confident {(c[hidden] > 0.5).sum()}; away RMS "
           f"{np.sqrt((np.linalg.norm(est - p, axis=1)[away & (c > 0.5)] ** 2).mean()):.3f} px")

@@ -84,6 +84,42 @@ def _cholesky_solve(G: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     return torch.stack(x, -2)
 
 
+def _offsets(w: int, stride: int = 1) -> torch.Tensor:
+    """(K, 2) x, y offsets of a w x w window: half-integers symmetric about 0; every ``stride``-th
+    one outward from the centre (+-0.5, +-(0.5 + stride), ...)."""
+    h = torch.arange(0.5, w / 2.0, float(stride), dtype=torch.float32)
+    r = torch.cat([-h.flip(0), h])
+    yy, xx = torch.meshgrid(r, r, indexing="ij")
+    return torch.stack([xx.reshape(-1), yy.reshape(-1)], 1)
+
+
+class FitWindow(nn.Module):
+    """Constants of a robust quadratic fit window (buffers only).
+
+    ``offsets (K, 2)`` pixel offsets; ``design (K, 6)`` the quadratic terms of the offsets scaled to
+    [-1, 1] (well conditioned) and ``design_scale (6,)`` back to pixel units; ``design_outer (K, 36)``
+    the rows' outer products (for the weighted normal equations); ``spatial (K,)`` Gaussian weights of
+    width ``sigma``; ``near (K,)`` a narrow Gaussian (``near_sigma``) divided by ``spatial`` and
+    normalised, so that ``(w * near).sum()`` is the explained fraction of the pixels right at the centre.
+    """
+
+    def __init__(self, side: int, sigma: float, stride: int, near_sigma: float):
+        super().__init__()
+        o = _offsets(side, stride)
+        self.half = side / 2.0
+        n = o / self.half
+        d = torch.stack([torch.ones_like(n[:, 0]), n[:, 0], n[:, 1], n[:, 0] ** 2, n[:, 0] * n[:, 1], n[:, 1] ** 2], 1)
+        h = self.half
+        spatial = torch.exp(-(o ** 2).sum(1) / (2 * sigma ** 2))
+        near = torch.exp(-(o ** 2).sum(1) / (2 * near_sigma ** 2))
+        self.register_buffer("offsets", o)
+        self.register_buffer("design", d)
+        self.register_buffer("design_scale", torch.tensor([1.0, 1 / h, 1 / h, 1 / h ** 2, 1 / h ** 2, 1 / h ** 2]))
+        self.register_buffer("design_outer", (d[:, :, None] * d[:, None, :]).reshape(-1, 36))
+        self.register_buffer("spatial", spatial)
+        self.register_buffer("near", near / near.sum() / spatial)
+
+
 class ColourCodeDetector(nn.Module):
     """Dense landmark detector by colour matching (see the module docstring).
 
@@ -96,12 +132,15 @@ class ColourCodeDetector(nn.Module):
         coarse: pooling factor of the coarse search.
         window: side of the centroid window (pixels, even).
         sigma1: colour width (levels) of the centroid weights.
-        fit_window, fit_sigma: side (even) and Gaussian width (pixels) of the robust quadratic fit.
+        pre_window, pre_sigma, pre_irls: window side, Gaussian width and reweighting passes of the
+            first robust fit (a smaller, cheaper first fit measured less accurate: 0.21 against 0.16 px
+            RMS on the sample actor, frontal).
+        fit_window, fit_sigma: side (even) and Gaussian width (pixels) of the final robust fit.
         fit_stride: the fit reads every ``fit_stride``-th pixel of its window (crops of a face are
             usually upsampled, so neighbouring crop pixels repeat each other).
         robust: colour residual scale (levels) of the fit's Cauchy weights; pixels that the local
             quadratic does not explain (another surface, an opening, the background) drop out.
-        irls: reweighting passes of the robust fit.
+        irls: reweighting passes of the final robust fit.
         channel_weights: weights of R, G, B in the position solve. Blue codes depth (template z),
             which kinks at every mesh edge in the image; red and green (x, y) map almost linearly to
             pixels, so blue is down-weighted for precision (it still counts for the search and the
@@ -114,50 +153,28 @@ class ColourCodeDetector(nn.Module):
     """
 
     def __init__(self, targets: np.ndarray, levels_per_mm=(1.0, 1.0, 1.0), size: int = 768, coarse: int = 8,
-                 window: int = 24, sigma1: float = 8.0, fit_window: int = 26, fit_sigma: float = 7.0, fit_stride: int = 1,
+                 window: int = 24, sigma1: float = 8.0,
+                 pre_window: int = 26, pre_sigma: float = 7.0, pre_irls: int = 3,
+                 fit_window: int = 26, fit_sigma: float = 7.0, fit_stride: int = 1,
                  robust: float = 3.0, irls: int = 3, tau: float = 4.0, min_inlier: float = 0.6,
                  min_cos: float = 0.15, near_sigma: float = 4.0, min_near: float = 0.8, background: float = 16.0,
                  channel_weights: tuple[float, float, float] = (1.0, 1.0, 0.1)):
         super().__init__()
         if size % coarse:
             raise ValueError(f"size {size} must be divisible by coarse {coarse}")
-        if window % 2 or fit_window % 2:
-            raise ValueError(f"window sides must be even, got {window}, {fit_window}")
+        if window % 2 or fit_window % 2 or pre_window % 2:
+            raise ValueError(f"window sides must be even, got {window}, {pre_window}, {fit_window}")
         self.size, self.coarse, self.sigma1, self.tau, self.background = size, coarse, sigma1, tau, background
-        self.fit_window, self.robust, self.irls = fit_window, robust, irls
+        self.robust, self.irls, self.pre_irls = robust, irls, pre_irls
         self.min_inlier, self.min_cos, self.min_near = min_inlier, min_cos, min_near
         t = torch.as_tensor(np.asarray(targets), dtype=torch.float32)
         self.register_buffer("targets", t)                          # (L, 3)
         self.register_buffer("targets_sq", (t * t).sum(1))          # (L,)
-        self.register_buffer("offsets1", self._offsets(window))     # (K1, 2) x, y
-        o = self._offsets(fit_window, fit_stride)
-        self.register_buffer("offsets2", o)
-        # quadratic design matrix in the window offsets scaled to [-1, 1] (K2, 6) (well conditioned),
-        # the scales back to pixel units (6,) and the Gaussian spatial weights (K2,)
-        h = fit_window / 2.0
-        n = o / h
-        self.register_buffer("design", torch.stack([torch.ones_like(n[:, 0]), n[:, 0], n[:, 1], n[:, 0] ** 2,
-                                                    n[:, 0] * n[:, 1], n[:, 1] ** 2], 1))
-        self.register_buffer("design_scale", torch.tensor([1.0, 1 / h, 1 / h, 1 / h ** 2, 1 / h ** 2, 1 / h ** 2]))
-        self.register_buffer("spatial", torch.exp(-(o ** 2).sum(1) / (2 * fit_sigma ** 2)))
-        # a narrow Gaussian (``near_sigma`` px) over the same window, divided by the spatial weights and
-        # normalised: (w * near).sum() is the explained fraction of the pixels right at the estimate
-        near = torch.exp(-(o ** 2).sum(1) / (2 * near_sigma ** 2))
-        self.register_buffer("near", near / near.sum() / self.spatial)
-        # outer products of the design rows (K2, 36), for the weighted normal equations
-        d = self.design
-        self.register_buffer("design_outer", (d[:, :, None] * d[:, None, :]).reshape(-1, 36))
+        self.register_buffer("offsets1", _offsets(window))     # (K1, 2) x, y
+        self.pre = FitWindow(pre_window, pre_sigma, 1, near_sigma)
+        self.fit = FitWindow(fit_window, fit_sigma, fit_stride, near_sigma)
         self.register_buffer("channel_sqrt_w", torch.tensor(channel_weights, dtype=torch.float32).sqrt())
         self.register_buffer("mm_per_level", 1.0 / torch.as_tensor(np.asarray(levels_per_mm), dtype=torch.float32))
-
-    @staticmethod
-    def _offsets(w: int, stride: int = 1) -> torch.Tensor:
-        """(K, 2) x, y offsets of a w x w window: half-integers symmetric about 0; every ``stride``-th
-        one outward from the centre (+-0.5, +-(0.5 + stride), ...)."""
-        h = torch.arange(0.5, w / 2.0, float(stride), dtype=torch.float32)
-        r = torch.cat([-h.flip(0), h])
-        yy, xx = torch.meshgrid(r, r, indexing="ij")
-        return torch.stack([xx.reshape(-1), yy.reshape(-1)], 1)
 
     def _gather(self, flat: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
         """Pixels at integer positions ``xy (N, M, 2)`` (clamped) of ``flat (N, S*S, 3)`` -> (N, M, 3)."""
@@ -189,45 +206,48 @@ class ColourCodeDetector(nn.Module):
         jtr = (J.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1)
         return torch.stack([s * jtr[..., 0] - q * jtr[..., 1], p * jtr[..., 1] - q * jtr[..., 0]], -1) / det.unsqueeze(-1)
 
-    def _weighted_fit(self, cols: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        """Quadratic coefficients (N, L, 6, 3) of the colours ``cols (N, L, K, 3)`` with weights (N, L, K)."""
+    @staticmethod
+    def _weighted_fit(win: "FitWindow", cols: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """Quadratic coefficients (N, L, 6, 3) of the colours ``cols (N, L, K, 3)`` with weights (N, L, K)
+        in the scaled offsets of ``win``."""
         N, L = w.shape[0], w.shape[1]
-        G = (w @ self.design_outer).reshape(N, L, 6, 6)
+        G = (w @ win.design_outer).reshape(N, L, 6, 6)
         G = G + (1e-5 * (w.sum(-1) + 1e-3)).view(N, L, 1, 1) * torch.eye(6)   # against degenerate windows
-        B = self.design.t() @ (w.unsqueeze(-1) * cols)                       # (N, L, 6, 3)
+        B = win.design.t() @ (w.unsqueeze(-1) * cols)                        # (N, L, 6, 3)
         return _cholesky_solve(G, B)
 
-    def _quadratic(self, flat: torch.Tensor, centre: torch.Tensor):
+    def _quadratic(self, flat: torch.Tensor, centre: torch.Tensor, win: "FitWindow", irls: int):
         """Robust fit of c(u) = a0 + a1 ux + a2 uy + a3 ux^2 + a4 ux uy + a5 uy^2 around ``centre`` and
         the solve of c(u) = target by Gauss-Newton.
 
         Weights: the spatial Gaussian, zero on background pixels, and Cauchy weights of the colour
-        residual (``irls`` passes). Returns the position (N, L, 2), the colour residual at it (N, L),
-        the inlier fraction of the foreground weight (N, L) and the Jacobian dc/du there (N, L, 3, 2).
+        residual (``irls`` passes), over the window ``win``. Returns the position (N, L, 2), the colour
+        residual at it (N, L), the inlier fraction of the foreground weight (N, L), the same under the
+        narrow Gaussian (N, L) and the Jacobian dc/du there (N, L, 3, 2).
         """
-        base, _, cols = self._window(flat, centre, self.offsets2)
+        base, _, cols = self._window(flat, centre, win.offsets)
         fg = (cols.amax(-1) >= self.background).float()                   # (N, L, K)
         t = self.targets.unsqueeze(0)
         cols = cols - t.unsqueeze(2)                                        # fit the difference to the target
-        w0 = fg * self.spatial
+        w0 = fg * win.spatial
         w = w0
-        a = self._weighted_fit(cols, w)
-        for _ in range(self.irls):
-            r2 = ((cols - self.design @ a) ** 2).sum(-1)
+        a = self._weighted_fit(win, cols, w)
+        for _ in range(irls):
+            r2 = ((cols - win.design @ a) ** 2).sum(-1)
             w = w0 / (1.0 + r2 / (self.robust ** 2))
-            a = self._weighted_fit(cols, w)
-        a = a * self.design_scale.view(6, 1)                                # coefficients in pixel units
+            a = self._weighted_fit(win, cols, w)
+        a = a * win.design_scale.view(6, 1)                                 # coefficients in pixel units
         inlier = w.sum(-1) / w0.sum(-1).clamp_min(1e-6)
-        near = (w * self.near).sum(-1)
+        near = (w * win.near).sum(-1)
         t = torch.zeros_like(t)                                             # solve c(u) - target = 0
         a0, a1, a2, a3, a4, a5 = (a[:, :, i] for i in range(6))
         u = self._solve2(torch.stack([a1, a2], -1), t - a0)
-        u = u.clamp(-self.fit_window / 2.0, self.fit_window / 2.0)
+        u = u.clamp(-win.half, win.half)
         for _ in range(3):
             ux, uy = u[..., :1], u[..., 1:]
             c = a0 + a1 * ux + a2 * uy + a3 * ux * ux + a4 * ux * uy + a5 * uy * uy
             J = torch.stack([a1 + 2 * a3 * ux + a4 * uy, a2 + a4 * ux + 2 * a5 * uy], -1)
-            u = (u + self._solve2(J, t - c)).clamp(-self.fit_window / 2.0, self.fit_window / 2.0)
+            u = (u + self._solve2(J, t - c)).clamp(-win.half, win.half)
         ux, uy = u[..., :1], u[..., 1:]
         c = a0 + a1 * ux + a2 * uy + a3 * ux * ux + a4 * ux * uy + a5 * uy * uy
         J = torch.stack([a1 + 2 * a3 * ux + a4 * uy, a2 + a4 * ux + 2 * a5 * uy], -1)
@@ -271,9 +291,10 @@ class ColourCodeDetector(nn.Module):
         w = torch.exp(-((cols - t) ** 2).sum(-1) / (2 * self.sigma1 ** 2))   # (N, L, K)
         sw = w.sum(-1, keepdim=True).clamp_min(1e-12)
         est = (w.unsqueeze(-1) * xy).sum(2) / sw
-        # 3. two passes of the robust local quadratic fit, each centred on the previous estimate
-        est, res, inlier, near, J = self._quadratic(flat, est)
-        est, res, inlier, near, J = self._quadratic(flat, est)
+        # 3. the robust local quadratic fit in a small, then in the wide window, each centred on the
+        #    previous estimate
+        est, _, _, _, _ = self._quadratic(flat, est, self.pre, self.pre_irls)
+        est, res, inlier, near, J = self._quadratic(flat, est, self.fit, self.irls)
         ok = (est == est).all(-1)                                          # not NaN (a degenerate window)
         est = torch.where(ok.unsqueeze(-1), est, centre).clamp(0.0, S - 1.0)
         # 4. confidence: the colour found at the estimate (bilinear) and the fit residual against the
