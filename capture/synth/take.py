@@ -319,7 +319,7 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
                         "pixels": "OpenCV, pixel centres at integer coordinates",
                         "meshes": "truth_meshes.npz vertices in camera coordinates (mm)"},
         "jaw_shape": None if motion.jaw_shape is None else names[motion.jaw_shape],
-        "colour_code": code.to_dict(),
+        "colour_code": {**code.to_dict(), "quantisation": "ordered 4x4 Bayer dither (capture.synth.texture)"},
         "detector": {"name": name, "onnx": f"detector/{name}.onnx", "spec": f"detector/{name}.json",
                      "embedding": str(actor.path / "landmarks" / f"{name}.json")},
         "video": {"file": VIDEO, "codec": cfg.codec, "crf": cfg.crf if cfg.codec == "h264" else 0,
