@@ -46,6 +46,8 @@ def synth_command(
     codec: str = typer.Option("h264-lossless", "--codec", help="h264-lossless (exact pixels) or h264 (yuv444p, --crf)."),
     crf: int = typer.Option(8, "--crf", help="Constant quality of --codec h264 (0 best .. 51)."),
     obj: bool = typer.Option(False, "--obj", help="Also write one OBJ mesh per frame."),
+    look: bool = typer.Option(False, "--look", help="Also write take_look.mp4: the frames shaded like a face, "
+                              "for people (the detector reads the coded take.mp4)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing take in --out."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
@@ -55,7 +57,7 @@ def synth_command(
 
     cfg = SynthConfig(actor=actor, out=out, frames=frames, fps=fps, size=_parse_size(size), preset=preset, seed=seed,
                       landmarks=landmarks, distortion=_parse_distortion(distortion), camera=camera, codec=codec,
-                      crf=crf, obj=obj, overwrite=overwrite)
+                      crf=crf, obj=obj, look=look, overwrite=overwrite)
     if not progress:
         path = synthesize(cfg)
     else:

@@ -31,7 +31,8 @@ def take(tmp_path_factory):
     actor = train_tiny_actor(root)
     out = root / "take"
     rc = main(["synth", "--actor", str(actor), "--out", str(out), "--frames", "6", "--size", "320x240",
-               "--preset", "talk", "--landmarks", "200", "--distortion", "-0.1,0.02,0,0,0", "--obj", "--no-progress"])
+               "--preset", "talk", "--landmarks", "200", "--distortion", "-0.1,0.02,0,0,0", "--obj", "--look",
+               "--no-progress"])
     assert rc == 0
     return actor, out
 
@@ -71,6 +72,14 @@ def test_files_and_truth(take):
     emb = json.loads((actor / "landmarks" / f"{name}.json").read_text())
     assert emb["count"] == 200 and emb["face_index"] == tmpl["face_index"].tolist()
     assert lo.shape == hi.shape == (3,)
+    # --look: the same frames shaded for people, covering the same pixels as the coded video
+    look = list(read_frames(out / "take_look.mp4"))
+    assert len(look) == 6 and report["look_video"]["file"] == "take_look.mp4"
+    face = frames[0].max(-1) >= 16
+    lf = look[0][face].astype(int)
+    assert face.mean() > 0.05 and (lf[:, 0] >= lf[:, 2]).mean() > 0.99  # skin tone: red over blue
+    bg = np.abs(look[0][~face].astype(int) - 40)                      # dark background, lossy H.264
+    assert np.median(bg) <= 1 and np.percentile(bg, 99) <= 10          # (ringing at the silhouette)
 
 
 def test_params_reproduce_meshes(take):

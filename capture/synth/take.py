@@ -3,6 +3,8 @@
 Outputs in the take directory (all written atomically; ``truth.json`` last, it marks a finished take)::
 
     take.mp4                     the video (lossless H.264 RGB by default, see capture.synth.video)
+    take_look.mp4                with --look only: the same frames Lambert-shaded, for people
+                                 (capture.synth.look; nothing reads it, the detector reads take.mp4)
     camera.json                  the camera used (calib.camera_io)
     truth_meshes.npz             vertices (T, V, 3) float32 mm, camera frame; faces (F, 3) int32
     truth_params.npz             head_R (T,3,3), head_t (T,3) mm: x_cam = head_R x + head_t for a head-frame x;
@@ -25,6 +27,7 @@ from __future__ import annotations
 import platform
 import shutil
 import time
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -42,14 +45,17 @@ from capture.errors import CaptureError
 from capture.synth import scene
 from capture.synth.detector_onnx import (LandmarkSet, build_detector, embedding_dict, export_onnx, landmark_colours,
                                          sample_landmarks, spec_dict)
+from capture.synth.look import shade
 from capture.synth.motion import PRESETS, generate_motion, preset_dict
 from capture.synth.raster import Raster, rasterize, sample_nearest
-from capture.synth.texture import BACKGROUND, PositionCode
+from capture.synth.texture import BACKGROUND, PositionCode, dither_to_uint8
 from capture.synth.video import CODECS, DEFAULT_CRF, VideoWriter
 from models.rotation import matrix_to_rot6d, rot6d_to_matrix
 
 TRUTH_JSON = "truth.json"
 VIDEO = "take.mp4"
+LOOK_VIDEO = "take_look.mp4"
+LOOK_CRF = 18
 
 #: Visibility: a landmark is visible when it faces the camera (cosine between its outward normal and
 #: the ray to the camera above this) and its depth is within the tolerance of the z-buffer.
@@ -75,6 +81,7 @@ class SynthConfig:
     crf: int = DEFAULT_CRF
     detector_size: int = 768
     obj: bool = False
+    look: bool = False
     overwrite: bool = False
 
 
@@ -187,7 +194,7 @@ def render_frame(vertices_cam: np.ndarray, faces: np.ndarray, colours: np.ndarra
     """Render one frame of the position-coded face and its landmark truth."""
     uv = scene.project(camera, vertices_cam)
     raster = rasterize(uv, vertices_cam[:, 2], faces, camera.image_size)
-    image = np.clip(np.rint(raster.interpolate(colours, faces, BACKGROUND)), 0, 255).astype(np.uint8)
+    image = dither_to_uint8(raster.interpolate(colours, faces, BACKGROUND))
     tri = vertices_cam[faces[landmarks.face_index]]                      # (L, 3, 3)
     p3 = np.einsum("lk,lkc->lc", landmarks.barycentric, tri)
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -243,7 +250,7 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
     colours = code.encode(tv)
     landmarks = sample_landmarks(template, cfg.landmarks, seed=0)
     name = detector_name(cfg.landmarks)
-    detector = build_detector(landmark_colours(colours, faces, landmarks), cfg.detector_size)
+    detector = build_detector(landmark_colours(colours, faces, landmarks), cfg.detector_size, code.levels_per_mm)
     onnx_bytes = export_onnx(detector)
     timings["detector_build_s"] = time.perf_counter() - t0
 
@@ -254,13 +261,20 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
     pts3 = np.zeros((T, L, 3), np.float32)
     vis = np.zeros((T, L), bool)
     stage("rendering", T)
-    with atomic_path(out / VIDEO) as tmp:
-        with VideoWriter(tmp, camera.image_size, cfg.fps, cfg.codec, cfg.crf) as writer:
-            for j in range(T):
-                fr = render_frame(verts_cam[j].astype(np.float64), faces, colours, camera, landmarks)
-                writer.write(fr.image)
-                pts2[j], pts3[j], vis[j] = fr.points_2d, fr.points_3d, fr.visible
-                tick()
+    with ExitStack() as stack:
+        tmp = stack.enter_context(atomic_path(out / VIDEO))
+        writer = stack.enter_context(VideoWriter(tmp, camera.image_size, cfg.fps, cfg.codec, cfg.crf))
+        look_writer = None
+        if cfg.look:
+            look_tmp = stack.enter_context(atomic_path(out / LOOK_VIDEO))
+            look_writer = stack.enter_context(VideoWriter(look_tmp, camera.image_size, cfg.fps, "h264", LOOK_CRF))
+        for j in range(T):
+            fr = render_frame(verts_cam[j].astype(np.float64), faces, colours, camera, landmarks)
+            writer.write(fr.image)
+            if look_writer is not None:
+                look_writer.write(shade(fr.raster, verts_cam[j].astype(np.float64), faces))
+            pts2[j], pts3[j], vis[j] = fr.points_2d, fr.points_3d, fr.visible
+            tick()
     timings["render_encode_s"] = time.perf_counter() - t0
 
     # --- files
@@ -305,11 +319,14 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
                         "pixels": "OpenCV, pixel centres at integer coordinates",
                         "meshes": "truth_meshes.npz vertices in camera coordinates (mm)"},
         "jaw_shape": None if motion.jaw_shape is None else names[motion.jaw_shape],
-        "colour_code": code.to_dict(),
+        "colour_code": {**code.to_dict(), "quantisation": "ordered 4x4 Bayer dither (capture.synth.texture)"},
         "detector": {"name": name, "onnx": f"detector/{name}.onnx", "spec": f"detector/{name}.json",
                      "embedding": str(actor.path / "landmarks" / f"{name}.json")},
         "video": {"file": VIDEO, "codec": cfg.codec, "crf": cfg.crf if cfg.codec == "h264" else 0,
                   "fps": cfg.fps, "frames": T},
+        "look_video": ({"file": LOOK_VIDEO, "codec": "h264", "crf": LOOK_CRF,
+                        "note": "Lambert-shaded for people; not read by the detector (capture.synth.look)"}
+                       if cfg.look else None),
         "visible_fraction": float(vis.mean()),
         "motion_ranges_deg": {k: [float(v.min()), float(v.max())] for k, v in
                               (("yaw", motion.yaw_deg), ("pitch", motion.pitch_deg), ("roll", motion.roll_deg))},
