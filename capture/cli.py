@@ -13,6 +13,7 @@ import typer
 
 from calib.cli import calibrate_command
 from capture.actor_cli import actor_app
+from capture.batch import batch_command
 from capture.demo import demo_command
 from capture.errors import CaptureError
 from capture.run import run_command
@@ -32,6 +33,7 @@ app.command("synth")(synth_command)
 app.command("run")(run_command)
 app.command("fit3d")(fit3d_command)
 app.command("demo")(demo_command)
+app.command("batch")(batch_command)
 
 
 def main(argv: list[str] | None = None) -> int:

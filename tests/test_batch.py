@@ -1,0 +1,205 @@
+"""``capture batch`` on the embedded local Ray: a shoot of short synthetic takes and one broken take.
+
+Ray is started once for the module (2 CPUs, as ``capture batch`` would start it on this machine); the
+command uses the Ray the process already has. The broken take (a text file named .mp4) is reported
+and does not stop the others; a rerun does no work; a dead worker's take is retried once; the shoot
+file's mistakes are one-line errors; relative paths are resolved against the shoot file's folder.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from capture.cli import main
+from capture.errors import CaptureError
+from capture.shoot import load_shoot
+from tests.tiny_actor import synth_tiny_take, train_tiny_actor
+
+FRAMES = {"a": 10, "b": 12}
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+SHOOT = """
+[shoot]
+name = "day1"
+out = "out"
+
+[defaults]
+actor = "actors/tiny"          # relative to this file
+iterations = 20
+window = 8
+formats = ["obj", "npz"]
+
+[[take]]
+name = "a"
+video = "takes/a/take.mp4"
+camera = "takes/a/camera.json"
+
+[[take]]
+name = "b"
+video = "takes/b/take.mp4"
+camera = "takes/b/camera.json"
+frames = "0:12"
+formats = "obj,usd,npz,overlay"
+"""
+
+BROKEN = """
+[[take]]
+name = "broken"
+video = "takes/broken/take.mp4"
+"""
+
+
+@pytest.fixture(scope="module")
+def ray_local():
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
+             runtime_env={"env_vars": {"PYTHONPATH": str(Path(__file__).resolve().parents[1])}})
+    yield
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def shoot_dir(tmp_path_factory):
+    """A shoot folder: the tiny actor, two short synthetic takes, a broken take, and the shoot files."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("shoot")
+    train_tiny_actor(root)   # -> root/actors/tiny
+    for name, n in FRAMES.items():
+        synth_tiny_take(root / "actors" / "tiny", root / "takes" / name, frames=n)
+    (root / "takes" / "broken").mkdir()
+    (root / "takes" / "broken" / "take.mp4").write_text("not a video")
+    _write(root / "shoot.toml", SHOOT + BROKEN)
+    _write(root / "shoot_ok.toml", SHOOT)
+    yield root
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def first_batch(shoot_dir, ray_local):
+    cwd = os.getcwd()
+    os.chdir(shoot_dir.parent)   # not the shoot folder: paths must resolve against the file's folder
+    try:
+        code = main(["batch", str(shoot_dir / "shoot.toml"), "--workers", "2", "--no-progress"])
+    finally:
+        os.chdir(cwd)
+    return code, json.loads((shoot_dir / "out" / "batch_report.json").read_text())
+
+
+def test_dry_run_lists_the_takes_and_runs_nothing(shoot_dir, capsys):
+    assert main(["batch", str(shoot_dir / "shoot.toml"), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    for name in ("a", "b", "broken"):
+        assert name in out
+    assert "3 of 3 takes would run (22 frames)" in " ".join(out.split())
+    assert not (shoot_dir / "out").exists()
+
+
+def test_batch_runs_every_take_and_reports_the_broken_one(shoot_dir, first_batch):
+    code, report = first_batch
+    assert code == 1   # a take failed
+    rows = {r["take"]: r for r in report["takes"]}
+    assert [rows[k]["status"] for k in ("a", "b", "broken")] == ["done", "done", "failed"]
+    assert "video" in rows["broken"]["error"] and rows["broken"]["attempts"] == 1   # input errors: no retry
+    assert report["totals"]["done"] == 2 and report["totals"]["failed"] == 1
+    assert report["totals"]["frames_fitted"] == sum(FRAMES.values())
+    assert report["ray"]["mode"] == "existing" and report["ray"]["workers"] == 2
+    for name, n in FRAMES.items():
+        run = shoot_dir / "out" / name
+        take_report = json.loads((run / "report.json").read_text())
+        assert take_report["frames"]["fitted"] == n == rows[name]["frames_fitted"]
+        assert take_report["settings"]["fit_settings"]["iterations"] == 20
+        assert take_report["settings"]["threads"] == 1
+        # The layout of capture run --out: meshes, params and the caches; the take's log and state.
+        assert len(list((run / "meshes").glob("frame_*.obj"))) == n
+        with np.load(run / "params.npz", allow_pickle=False) as p:
+            assert p["frame_index"].tolist() == list(range(n))
+        assert rows[name]["reprojection_mean_px"] == pytest.approx(take_report["error"]["mean"])
+        assert "done" in (run / "batch_take.log").read_text()
+        assert json.loads((run / "batch_take.json").read_text())["status"] == "done"
+    assert (shoot_dir / "out" / "b" / "overlay.mp4").is_file() and list((shoot_dir / "out" / "b").glob("take.usd*"))
+    assert not (shoot_dir / "out" / "a" / "overlay.mp4").exists()
+    assert "failed" in (shoot_dir / "out" / "broken" / "batch_take.log").read_text()
+    with open(shoot_dir / "out" / "batch_summary.csv", newline="") as fh:
+        table = {r["take"]: r for r in csv.DictReader(fh)}
+    assert table["a"]["status"] == "done" and int(table["b"]["frames_fitted"]) == 12
+    assert table["broken"]["status"] == "failed" and table["broken"]["error"]
+
+
+def test_rerun_does_no_work(shoot_dir, first_batch, capsys):
+    runs = shoot_dir / "out"
+    before = {p: p.stat().st_mtime_ns for p in runs.rglob("*") if p.is_file() and p.parent != runs}
+    assert main(["batch", str(shoot_dir / "shoot_ok.toml"), "--out", str(runs), "--no-progress"]) == 0
+    report = json.loads((runs / "batch_report.json").read_text())
+    assert [r["status"] for r in report["takes"]] == ["already done", "already done"]
+    assert report["ray"] is None                              # no task was even submitted
+    after = {p: p.stat().st_mtime_ns for p in runs.rglob("*") if p.is_file() and p.parent != runs}
+    assert after == before
+    assert "already done" in capsys.readouterr().out
+
+
+def test_a_dead_worker_is_retried_once(tmp_path, ray_local):
+    import ray
+
+    from capture import batch_ray
+
+    @ray.remote(max_retries=0)
+    def dies_once(marker: str, name: str, attempt: int, threads: int, counter):
+        if not Path(marker).exists():
+            Path(marker).write_text("died")
+            os._exit(1)                                      # the worker process dies
+        counter.add.remote(name, 5)
+        return {"take": name, "status": "done", "frames_fitted": 5}
+
+    def always_fails(marker, name, attempt, threads, counter):
+        return {"take": name, "status": "failed", "error": "boom", "retry": True}
+
+    results = {}
+    jobs = [batch_ray.Job("x", (str(tmp_path / "marker"), "x")), batch_ray.Job("y", ("-", "y"))]
+    batch_ray.run_tasks(jobs[:1], 1, 1, lambda j, r: results.setdefault(j.name, r), poll=0.1, task=dies_once)
+    assert results["x"]["status"] == "done" and results["x"]["attempt"] == 2
+    assert jobs[0].attempts[0]["status"] == "failed" and "worker" in jobs[0].attempts[0]["error"]
+    batch_ray.run_tasks(jobs[1:], 1, 1, lambda j, r: results.setdefault(j.name, r), poll=0.1,
+                        task=ray.remote(max_retries=0)(always_fails))
+    assert results["y"]["status"] == "failed" and len(jobs[1].attempts) == 2   # once, then once more
+
+
+def test_shoot_file_mistakes_are_one_line_errors(tmp_path, monkeypatch):
+    monkeypatch.delenv("CAPTURE_ACTORS", raising=False)
+    ok = '[defaults]\nactor = "anna"\n\n[[take]]\nvideo = "v/t1.mp4"\n'
+    shoot = load_shoot(_write(tmp_path / "s.toml", ok))
+    t = shoot.takes[0]
+    assert t.name == "t1" and t.config.video == tmp_path / "v" / "t1.mp4"
+    assert t.config.actor == str(tmp_path / "actors" / "anna") and t.config.out == tmp_path / "runs" / "s" / "t1"
+    cases = {
+        ok + 'iteratons = 5\n': "unknown key 'iteratons' in take 1",
+        ok.replace("[defaults]", "[default]"): "unknown key 'default'",
+        ok + '\n[[take]]\nvideo = "w/t1.mp4"\n': "take name 't1' is used by takes 1 and 2",
+        ok + 'seed = "one"\n': "'seed' in take 1 must be an integer",
+        ok + 'window = true\n': "must be an integer",
+        ok + 'formats = "obj,gif"\n': "gif",
+        '[[take]]\nvideo = "a.mp4"\n': "has no actor",
+        '[defaults]\nactor = "a"\n\n[[take]]\nname = "x"\n': "has no 'video'",
+        '[defaults]\nactor = "a"\n': "lists no takes",
+        'take = [': "not valid TOML",
+    }
+    for text, msg in cases.items():
+        with pytest.raises(CaptureError) as exc:
+            load_shoot(_write(tmp_path / "bad.toml", text))
+        assert msg in str(exc.value), (text, str(exc.value))
+    assert main(["batch", str(_write(tmp_path / "bad.toml", ok + "bogus = 1\n"))]) == 2
+    assert main(["batch", str(tmp_path / "missing.toml")]) == 2
