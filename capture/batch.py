@@ -42,6 +42,7 @@ class BatchConfig:
     workers: int | None = None         # takes in flight; None: this machine's cores / threads (embedded)
     threads: int = 1                   # CPUs (and torch threads) per take
     address: str | None = None         # None: embedded local Ray
+    segment_frames: int | None = None  # None: the shoot file's [shoot] segment_frames (default 0: off)
     dry_run: bool = False
     progress: bool = True
 
@@ -56,28 +57,38 @@ class PlannedTake:
     take: Take
     key: str
     frames: int                        # frames to process (0 when the video cannot be read)
+    segments: list[tuple[int, int]]    # more than one: split into segments (capture.batch_segments)
     done: dict | None                  # the stored result when already done with this key
 
 
-def expected_frames(take: Take) -> int:
-    """Frames the take will process, from the video header and its frame range (0 if unreadable)."""
+def frame_range(take: Take) -> tuple[int, int]:
+    """The take's frames ``[start, end)`` from the video header and its range ((0, 0) if unreadable)."""
     from capture.run_inputs import parse_frame_range
     from capture.video import open_video
 
     try:
         with open_video(take.config.video) as reader:
             n = reader.info.frame_count
-        start, end = parse_frame_range(take.config.frames, n)
-        return end - start
+        return parse_frame_range(take.config.frames, n)
     except Exception:  # reported by the take itself when it runs
-        return 0
+        return 0, 0
 
 
-def plan(shoot: Shoot) -> list[PlannedTake]:
+def plan(shoot: Shoot, segment_frames: int = 0) -> list[PlannedTake]:
+    """What each take will do: its key, frames, segments and whether it is done already."""
+    from capture.batch_segments import plan_segments
+
     out = []
     for t in shoot.takes:
-        key = take_key(t.config)
-        out.append(PlannedTake(t, key, expected_frames(t), done_result(t.config, key)))
+        start, end = frame_range(t)
+        segments = [(start, end)]
+        if segment_frames and end > start:
+            if segment_frames <= 2 * t.config.window:
+                raise CaptureError(f"segment_frames {segment_frames} must be more than twice the fitting window "
+                                   f"({t.config.window} frames, take {t.name}); segments overlap by a window")
+            segments = plan_segments(start, end, segment_frames, t.config.window)
+        key = take_key(t.config, segments if len(segments) > 1 else None)
+        out.append(PlannedTake(t, key, end - start, segments, done_result(t.config, key)))
     return out
 
 
@@ -85,22 +96,31 @@ def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
+def _rel(path: Path, base: Path) -> str:
+    try:
+        return str(Path(path).relative_to(base))
+    except ValueError:
+        return str(path)
+
+
 def print_plan(shoot: Shoot, planned: list[PlannedTake], console) -> None:
     from rich.table import Table
 
     t = Table(title=f"capture batch --dry-run: {shoot.name} ({shoot.path})", title_justify="left")
-    for col in ("take", "video", "frames", "actor", "out", "would"):
-        t.add_column(col, justify="right" if col == "frames" else "left")
+    for col in ("take", "video", "frames", "actor", "would"):
+        t.add_column(col, justify="right" if col == "frames" else "left", overflow="fold")
     for p in planned:
         c = p.take.config
         would = "skip (done, same settings)" if p.done else "run"
+        if not p.done and len(p.segments) > 1:
+            would += f" in {len(p.segments)} segments " + ", ".join(f"{s}:{e}" for s, e in p.segments)
         if not p.done and p.frames == 0:
             would += " (video unreadable or missing: will fail)"
-        t.add_row(p.take.name, str(c.video), str(p.frames), Path(c.actor).name, str(c.out), would)
+        t.add_row(p.take.name, _rel(c.video, shoot.path.parent), str(p.frames), Path(c.actor).name, would)
     console.print(t)
     n_run = sum(p.done is None for p in planned)
     console.print(f"{n_run} of {len(planned)} takes would run ({sum(p.frames for p in planned if not p.done)} frames); "
-                  f"output in {shoot.out}")
+                  f"output in {shoot.out}/<take>")
 
 
 class ShootProgress:
@@ -176,12 +196,16 @@ def run_batch(cfg: BatchConfig, console=None) -> dict:
     if cfg.workers is not None and cfg.workers < 1:
         raise CaptureError(f"--workers must be at least 1, got {cfg.workers}")
     shoot = load_shoot(cfg.shoot, cfg.out)
-    planned = plan(shoot)
+    if cfg.segment_frames is not None and cfg.segment_frames < 0:
+        raise CaptureError(f"--segment-frames must be 0 (off) or a number of frames, got {cfg.segment_frames}")
+    segment_frames = shoot.segment_frames if cfg.segment_frames is None else cfg.segment_frames
+    planned = plan(shoot, segment_frames)
     if cfg.dry_run:
         print_plan(shoot, planned, console)
         return {"format": BATCH_FORMAT, "dry_run": True, "shoot": str(shoot.path), "out": str(shoot.out),
                 "takes": [{"take": p.take.name, "would": "skip" if p.done else "run", "frames": p.frames,
-                           "out": str(p.take.config.out)} for p in planned]}
+                           "segments": [list(se) for se in p.segments], "out": str(p.take.config.out)}
+                          for p in planned]}
 
     t_start = time.perf_counter()
     shoot.out.mkdir(parents=True, exist_ok=True)
@@ -212,7 +236,8 @@ def run_batch(cfg: BatchConfig, console=None) -> dict:
                       f"({sum(p.frames for p in to_run)} frames) on {info.mode} Ray ({info.nodes} node(s), "
                       f"{info.cpus:g} CPUs), {workers} at a time x {cfg.threads} thread(s); output in {shoot.out}",
                       highlight=False)
-        jobs = [batch_ray.Job(p.take.name, (p.take.config, p.take.name)) for p in to_run]
+        jobs = [batch_ray.Job(p.take.name, (p.take.config, p.take.name), p.segments if len(p.segments) > 1 else [])
+                for p in to_run]
 
         with ShootProgress(to_run, cfg.progress, console) as prog:
             def on_result(job: batch_ray.Job, res: dict) -> None:
@@ -258,6 +283,9 @@ def batch_command(
     threads: int = typer.Option(1, "--threads", help="CPU cores (torch and detector threads) per take."),
     address: Optional[str] = typer.Option(None, "--address", help="Join an existing Ray cluster (e.g. "
                                           "'auto' or 'head-node:6379') instead of starting a local Ray."),
+    segment_frames: Optional[int] = typer.Option(None, "--segment-frames", help="Split takes longer than this "
+                                                 "into overlapping segments fitted in parallel and blended "
+                                                 "(default: the shoot file's segment_frames, else 0: off)."),
     dry_run: bool = typer.Option(False, "--dry-run", help="List the takes and what would run; run nothing."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show the shoot's progress bar."),
 ) -> None:
@@ -266,6 +294,6 @@ def batch_command(
     Takes done before with the same settings are skipped; a failed take is retried once and never stops
     the others. Exit status 1 when any take failed."""
     report = run_batch(BatchConfig(shoot=shoot, out=out, workers=workers, threads=threads, address=address,
-                                   dry_run=dry_run, progress=progress))
+                                   segment_frames=segment_frames, dry_run=dry_run, progress=progress))
     if not dry_run and (report["totals"]["failed"] or report["totals"]["interrupted"]):
         raise typer.Exit(1)

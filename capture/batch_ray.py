@@ -5,7 +5,9 @@
   ``ray start --address ...`` on the others). When the calling process already has Ray initialised
   (a script or a test), that Ray is used as it is.
 * Every take is one task asking for ``threads`` CPUs; the task pins torch to as many threads
-  (:func:`capture.batch_take.process_take`). At most ``workers`` tasks are in flight.
+  (:func:`capture.batch_take.process_take`). A take split into segments
+  (:mod:`capture.batch_segments`) is one task per segment plus a merge task that Ray starts when
+  they are done. At most ``workers`` tasks are in flight.
 * Ray's own task retries are off (``max_retries=0``): a take whose task failed with an unexpected
   error, or whose worker process died, is submitted once more by :func:`run_tasks`; a take that failed
   on its input (:class:`~capture.errors.CaptureError`) is not (the message says what to fix).
@@ -89,6 +91,31 @@ def _remotes():
             sink = None if counter is None else (lambda n: counter.add.remote(name, n))
             return process_take(cfg, name, attempt, threads, sink)
 
+        @ray.remote(max_retries=0)
+        def segment_task(cfg, name: str, start: int, end: int, attempt: int, threads: int, counter):
+            from capture.batch_segments import fit_segment
+            from capture.batch_take import guarded
+
+            sink = None if counter is None else (lambda n: counter.add.remote(name, n))
+            return guarded(cfg, name, attempt, threads, lambda c: fit_segment(c, start, end), sink,
+                           what=f"segment {start}:{end} of take")
+
+        @ray.remote(max_retries=0)
+        def merge_task(cfg, name: str, segments: list, attempt: int, threads: int, *segment_results):
+            from capture.batch_segments import merge_segments
+            from capture.batch_take import guarded, result_from_report
+
+            bad = [r for r in segment_results if r.get("status") != "done"]
+            if bad:   # the take fails like its first failed segment (and is retried if that one may be)
+                r = bad[0]
+                return {**r, "error": f"segment {r.get('segment', '?')}: {r.get('error')}"}
+            res = guarded(cfg, name, attempt, threads, lambda c: result_from_report(merge_segments(c, segments)),
+                          what="merge of the segments of take")
+            res["segments"] = [list(se) for se in segments]
+            res["seconds_segments"] = [r.get("seconds") for r in segment_results]
+            res["seconds"] += max(r.get("seconds") or 0.0 for r in segment_results)   # the critical path
+            return res
+
         @ray.remote(num_cpus=0)
         class FrameCounter:
             def __init__(self):
@@ -100,8 +127,8 @@ def _remotes():
             def snapshot(self) -> dict[str, int]:
                 return dict(self.frames)
 
-        _REMOTE.update(task=take_task, counter=FrameCounter)
-    return _REMOTE["task"], _REMOTE["counter"]
+        _REMOTE.update(task=take_task, segment=segment_task, merge=merge_task, counter=FrameCounter)
+    return _REMOTE
 
 
 @dataclass
@@ -110,7 +137,13 @@ class Job:
 
     name: str
     args: tuple                  # (cfg, name) for the take task
+    segments: list[tuple[int, int]] = field(default_factory=list)   # >1: one task per segment, then a merge
     attempts: list[dict] = field(default_factory=list)
+
+    @property
+    def weight(self) -> int:
+        """Tasks this job runs side by side (its share of ``workers``)."""
+        return max(1, len(self.segments))
 
 
 def run_tasks(jobs: Sequence[Job], workers: int, threads: int, on_result: Callable[[Job, dict], None],
@@ -126,16 +159,26 @@ def run_tasks(jobs: Sequence[Job], workers: int, threads: int, on_result: Callab
     """
     import ray
 
-    take_task, Counter = _remotes()
-    task = task or take_task
-    counter = Counter.remote()
+    remote = _remotes()
+    task = task or remote["task"]
+    counter = remote["counter"].remote()
     queue = [(job, 1) for job in jobs]
     queue.reverse()
     running: dict[Any, tuple[Job, int]] = {}
+    helpers: dict[Any, list] = {}   # a segmented job's segment tasks (cancelled with it)
 
     def submit(job: Job, attempt: int) -> None:
-        ref = task.options(num_cpus=threads).remote(*job.args, attempt, threads, counter)
+        if len(job.segments) > 1:
+            segs = [remote["segment"].options(num_cpus=threads).remote(*job.args, s, e, attempt, threads, counter)
+                    for s, e in job.segments]
+            ref = remote["merge"].options(num_cpus=threads).remote(*job.args, job.segments, attempt, threads, *segs)
+            helpers[ref] = segs
+        else:
+            ref = task.options(num_cpus=threads).remote(*job.args, attempt, threads, counter)
         running[ref] = (job, attempt)
+
+    def load() -> int:
+        return sum(job.weight for job, _ in running.values())
 
     def collect(ref, job: Job, attempt: int) -> dict | None:
         try:
@@ -155,11 +198,12 @@ def run_tasks(jobs: Sequence[Job], workers: int, threads: int, on_result: Callab
     last = 0.0
     try:
         while queue or running:
-            while queue and len(running) < workers:
+            while queue and (not running or load() + queue[-1][0].weight <= workers):
                 submit(*queue.pop())
             ready, _ = ray.wait(list(running), num_returns=1, timeout=poll)
             for ref in ready:
                 job, attempt = running.pop(ref)
+                helpers.pop(ref, None)
                 if collect(ref, job, attempt) is None:
                     queue.append((job, attempt + 1))   # next in line
             if on_frames is not None and time.monotonic() - last >= poll:
@@ -169,7 +213,8 @@ def run_tasks(jobs: Sequence[Job], workers: int, threads: int, on_result: Callab
             on_frames(ray.get(counter.snapshot.remote()))
     except KeyboardInterrupt:
         for ref in running:
-            ray.cancel(ref)
+            for r in [ref, *helpers.get(ref, [])]:
+                ray.cancel(r)
         deadline = time.monotonic() + 60
         while running and time.monotonic() < deadline:
             ready, _ = ray.wait(list(running), num_returns=len(running), timeout=1.0)

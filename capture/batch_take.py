@@ -43,9 +43,10 @@ def _sha(path: Path | None) -> str | None:
         return None
 
 
-def take_key(cfg: RunConfig) -> str:
-    """sha256 over the take's output-relevant settings and its input fingerprints (cheap: the video's
-    identity reads 2 MiB; the other inputs are small files or the actor's weights)."""
+def take_key(cfg: RunConfig, segments: list | None = None) -> str:
+    """sha256 over the take's output-relevant settings, its segments (when split) and its input
+    fingerprints (cheap: the video's identity reads 2 MiB; the other inputs are small files or the
+    actor's weights)."""
     from capture.actor_package import WEIGHTS, actor_dir
     from capture.run_inputs import default_detector
     from capture.video import video_identity
@@ -65,7 +66,10 @@ def take_key(cfg: RunConfig) -> str:
         "detector_onnx": _sha(det), "detector_spec": _sha(None if det is None else det.with_suffix(".json")),
         "embeddings": {p.name: _sha(p) for p in sorted((actor / "landmarks").glob("*.json"))},
     }
-    return digest({"settings": settings, "fingerprints": fingerprints})
+    key = {"settings": settings, "fingerprints": fingerprints}
+    if segments:
+        key["segments"] = [list(map(int, se)) for se in segments]
+    return digest(key)
 
 
 def done_result(cfg: RunConfig, key: str) -> dict | None:
@@ -126,16 +130,27 @@ def process_take(cfg: RunConfig, name: str, attempt: int, threads: int,
                  on_frames: Callable[[int], None] | None = None) -> dict:
     """Run one take like ``capture run``; returns ``{"status": "done" | "failed" | "interrupted", ...}``.
 
+    See :func:`guarded` for threads, logging and failures; the result carries the summary fields of
+    the take's report (:func:`result_from_report`).
+    """
+    from capture.run import run_take
+
+    return guarded(cfg, name, attempt, threads, lambda c: result_from_report(run_take(c)), on_frames)
+
+
+def guarded(cfg: RunConfig, name: str, attempt: int, threads: int, work: Callable[[RunConfig], dict],
+            on_frames: Callable[[int], None] | None = None, what: str = "take") -> dict:
+    """``work(cfg)`` on a worker, with torch pinned, logged to ``OUT/batch_take.log``; never raises.
+
     ``threads`` pins torch (and the detector's onnxruntime through ``cfg.threads``) to the task's share
-    of the cores. ``on_frames(n)`` is called as frames are fitted. Never raises for a bad take: input
-    problems (:class:`CaptureError`) come back as ``failed`` with ``retry: False`` (running again cannot
-    help), anything else as ``failed`` with ``retry: True`` and the traceback in the take's log.
+    of the cores. ``on_frames(n)`` is called as the fit stage advances. Input problems
+    (:class:`CaptureError`) come back as ``failed`` with ``retry: False`` (running again cannot help),
+    anything else as ``failed`` with ``retry: True`` and the traceback in the log.
     """
     import dataclasses
 
     import torch
 
-    from capture.run import run_take
     from capture.run_progress import progress_listener
 
     cfg = dataclasses.replace(cfg, threads=int(threads), progress=False)
@@ -149,14 +164,13 @@ def process_take(cfg: RunConfig, name: str, attempt: int, threads: int,
     torch.set_num_threads(int(threads))
     throttle = _Throttle(on_frames)
     with open(log_path, "a", encoding="utf-8") as log:
-        log.write(f"--- {base['started']} take {name} attempt {attempt} on {base['host']} (pid {base['pid']}, "
+        log.write(f"--- {base['started']} {what} {name} attempt {attempt} on {base['host']} (pid {base['pid']}, "
                   f"{threads} thread(s), python {platform.python_version()})\n")
         log.write(f"settings: {cfg.to_dict()}\n")
         log.flush()
         try:
             with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log), progress_listener(throttle):
-                report = run_take(cfg)
-            res = {**base, "status": "done", **result_from_report(report)}
+                res = {**base, "status": "done", **work(cfg)}
         except Interrupted as exc:
             res = {**base, "status": "interrupted", "error": str(exc), "retry": False}
         except CaptureError as exc:
@@ -171,6 +185,6 @@ def process_take(cfg: RunConfig, name: str, attempt: int, threads: int,
             torch.set_num_threads(old_threads)
             throttle.flush()
         res["seconds"] = time.perf_counter() - t0
-        log.write(f"{_now()} {res['status']} in {res['seconds']:.1f} s"
+        log.write(f"{_now()} {what} {name} {res['status']} in {res['seconds']:.1f} s"
                   + (f": {res['error']}" if res.get("error") else "") + "\n")
     return res

@@ -6,6 +6,7 @@ allowed there (a typo must not silently fall back to a default)::
     [shoot]                      # optional
     name = "day1"                # default: the file's stem
     out = "runs/day1"            # batch output folder (default: runs/<shoot name>); each take -> out/<take name>
+    segment_frames = 600         # split takes longer than this into segments fitted in parallel (default 0: off)
 
     [defaults]                   # optional: any take setting below, shared by every take
     actor = "anna"
@@ -48,7 +49,7 @@ TAKE_SETTINGS: dict[str, tuple[type, ...]] = {
     "preset": (str,), "seed": (int,), "iterations": (int,), "window": (int,), "device": (str,),
 }
 TAKE_ONLY: dict[str, tuple[type, ...]] = {"name": (str,), "video": (str,), "out": (str,)}
-SHOOT_KEYS: dict[str, tuple[type, ...]] = {"name": (str,), "out": (str,)}
+SHOOT_KEYS: dict[str, tuple[type, ...]] = {"name": (str,), "out": (str,), "segment_frames": (int,)}
 TOP_KEYS = ("shoot", "defaults", "take")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
@@ -70,6 +71,7 @@ class Shoot:
     name: str
     out: Path                    # the batch output folder (absolute)
     takes: list[Take]
+    segment_frames: int = 0      # 0: every take is one task; else longer takes are split (capture.batch_segments)
     defaults: dict = field(default_factory=dict)
 
 
@@ -133,6 +135,9 @@ def load_shoot(path: str | os.PathLike, out: str | os.PathLike | None = None) ->
     if not isinstance(raw_takes, list) or not raw_takes:
         raise CaptureError(f"shoot file {path.name} lists no takes; add one [[take]] table per take with its video")
     name = shoot.get("name", path.stem)
+    if shoot.get("segment_frames", 0) < 0:
+        raise CaptureError(f"segment_frames in [shoot] must be 0 (off) or a number of frames, got "
+                           f"{shoot['segment_frames']}")
     out_dir = Path(out).expanduser().resolve() if out is not None else \
         _resolve_path(base, shoot.get("out", f"runs/{name}")).resolve()
 
@@ -170,4 +175,5 @@ def load_shoot(path: str | os.PathLike, out: str | os.PathLike | None = None) ->
             preset=s.get("preset", "default"), seed=s.get("seed", 0), iterations=s.get("iterations"),
             device=s.get("device", "cpu"), window=window, overlap=min(6, max(0, window // 5)), progress=False)
         takes.append(Take(tname, cfg, {"video": str(video), **s}))
-    return Shoot(path=path, name=name, out=out_dir, takes=takes, defaults=dict(defaults))
+    return Shoot(path=path, name=name, out=out_dir, takes=takes, segment_frames=int(shoot.get("segment_frames", 0)),
+                 defaults=dict(defaults))
