@@ -133,16 +133,22 @@ class ShootProgress:
         self.console, self.bar = console, None
         if enabled and planned:
             from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TextColumn,
-                                       TimeElapsedColumn, TimeRemainingColumn)
+                                       TimeElapsedColumn)
             from rich.text import Text
 
-            class Speed(ProgressColumn):
+            class Overall(ProgressColumn):
+                """Frames per second over the whole shoot so far, and the time left at that rate."""
+
                 def render(self, task):
-                    return Text(f"{task.speed:.2f} frames/s" if task.speed else "- frames/s")
+                    fps = task.completed / task.elapsed if task.elapsed and task.completed else None
+                    if fps is None:
+                        return Text("- frames/s, time left -")
+                    m, s = divmod(int((task.total - task.completed) / fps), 60)
+                    h, m = divmod(m, 60)
+                    return Text(f"{fps:.2f} frames/s, {h}:{m:02d}:{s:02d} left")
 
             self.bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                TextColumn("frames"), Speed(), TimeElapsedColumn(), TimeRemainingColumn(),
-                                TextColumn("left"), console=console, speed_estimate_period=120)
+                                TextColumn("frames"), Overall(), TimeElapsedColumn(), console=console)
 
     def __enter__(self) -> "ShootProgress":
         if self.bar is not None:

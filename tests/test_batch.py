@@ -21,7 +21,7 @@ from capture.errors import CaptureError
 from capture.shoot import load_shoot
 from tests.tiny_actor import synth_tiny_take, train_tiny_actor
 
-FRAMES = {"a": 24, "b": 12}
+FRAMES = {"a": 20, "b": 10}
 
 
 def _write(path: Path, text: str) -> Path:
@@ -49,7 +49,7 @@ camera = "takes/a/camera.json"
 name = "b"
 video = "takes/b/take.mp4"
 camera = "takes/b/camera.json"
-frames = "0:12"
+frames = "0:10"
 formats = "obj,usd,npz,overlay"
 """
 
@@ -106,7 +106,7 @@ def test_dry_run_lists_the_takes_and_runs_nothing(shoot_dir, capsys):
     out = capsys.readouterr().out
     for name in ("a", "b", "broken"):
         assert name in out
-    assert "3 of 3 takes would run (36 frames)" in " ".join(out.split())
+    assert "3 of 3 takes would run (30 frames)" in " ".join(out.split())
     assert not (shoot_dir / "out").exists()
 
 
@@ -137,7 +137,7 @@ def test_batch_runs_every_take_and_reports_the_broken_one(shoot_dir, first_batch
     assert "failed" in (shoot_dir / "out" / "broken" / "batch_take.log").read_text()
     with open(shoot_dir / "out" / "batch_summary.csv", newline="") as fh:
         table = {r["take"]: r for r in csv.DictReader(fh)}
-    assert table["a"]["status"] == "done" and int(table["b"]["frames_fitted"]) == 12
+    assert table["a"]["status"] == "done" and int(table["b"]["frames_fitted"]) == 10
     assert table["broken"]["status"] == "failed" and table["broken"]["error"]
 
 
@@ -154,7 +154,7 @@ def test_rerun_does_no_work(shoot_dir, first_batch, capsys):
 
 
 def test_a_long_take_split_into_segments_is_stitched_from_them(shoot_dir, first_batch):
-    """Take a (24 frames, window 8) in segments of at most 17 frames: 0:16 and 8:24, blended over 8:16."""
+    """Take a (20 frames, window 8) in segments of at most 17 frames: 0:14 and 6:20, blended over 6:14."""
     from capture.batch_segments import _smoothstep
     from capture.fit_take import FrameFit
     from capture.run_stages import iter_fits
@@ -164,8 +164,8 @@ def test_a_long_take_split_into_segments_is_stitched_from_them(shoot_dir, first_
                  "--no-progress"]) == 0
     whole, split = shoot_dir / "out" / "a", out / "a"
     report = json.loads((split / "report.json").read_text())
-    assert report["segments"]["frames"] == [[0, 16], [8, 24]]
-    assert report["frames"]["fitted"] == 24
+    assert report["segments"]["frames"] == [[0, 14], [6, 20]]
+    assert report["frames"]["fitted"] == 20
     # The layout of an unsplit run, and the very same detections (the detector's tracking units are
     # independent 32-frame blocks at absolute frame numbers).
     files = lambda d: sorted(str(p.relative_to(d)) for p in d.rglob("*")
@@ -176,20 +176,21 @@ def test_a_long_take_split_into_segments_is_stitched_from_them(shoot_dir, first_
     # Outside the overlap each frame is its segment's fit; inside, the smoothstep blend of both.
     seg = [{f.frame: f for f in iter_fits(Path(d))} for d in report["segments"]["segment_fit_dirs"]]
     with np.load(split / "params.npz") as p:
-        assert p["frame_index"].tolist() == list(range(24))
-        for i in range(24):
-            if i < 8 or i >= 16:
-                want = (seg[0] if i < 8 else seg[1])[i].head_t
+        assert p["frame_index"].tolist() == list(range(20))
+        for i in range(20):
+            if i < 6 or i >= 14:
+                want = (seg[0] if i < 6 else seg[1])[i].head_t
             else:
-                alpha = _smoothstep((i - 8 + 1) / 9)
+                alpha = _smoothstep((i - 6 + 1) / 9)
                 want = (1 - alpha) * seg[0][i].head_t + alpha * seg[1][i].head_t
             np.testing.assert_allclose(p["head_t_mm"][i], want, rtol=0, atol=1e-4, err_msg=f"frame {i}")
+    assert max(np.abs(seg[0][i].head_t - seg[1][i].head_t).max() for i in range(6, 14)) > 1e-3   # a real blend
     assert isinstance(seg[0][0], FrameFit)
     # As close to the truth as the unsplit fit is asserted to be in test_run (tiny, briefly trained actor).
     truth = np.load(shoot_dir / "takes" / "a" / "truth_meshes.npz")["vertices"]
     import trimesh
 
-    for i in (4, 12, 20):
+    for i in (3, 10, 17):
         v = trimesh.load(split / "meshes" / f"frame_{i:06d}.obj", process=False).vertices
         assert np.linalg.norm(v - truth[i], axis=1).mean() < 10.0
 
