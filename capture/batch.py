@@ -39,7 +39,7 @@ class BatchConfig:
 
     shoot: Path
     out: Path | None = None            # None: the shoot file's [shoot] out, else runs/<shoot name> beside it
-    workers: int | None = None         # takes in flight; None: this machine's cores / threads (embedded)
+    workers: int | None = None         # tasks in flight; None: this machine's (or the cluster's) cores / threads
     threads: int = 1                   # CPUs (and torch threads) per take
     address: str | None = None         # None: embedded local Ray
     segment_frames: int | None = None  # None: the shoot file's [shoot] segment_frames (default 0: off)
@@ -231,19 +231,20 @@ def run_batch(cfg: BatchConfig, console=None) -> dict:
 
     save()
     if to_run:
-        cpus = os.cpu_count() or 1
-        workers = cfg.workers or (max(1, cpus // cfg.threads) if cfg.address is None else None)
-        info = batch_ray.connect(cfg.address, min(workers or 1, len(to_run)) if cfg.address is None else 0,
-                                 cfg.threads)
-        if workers is None:   # a cluster without --workers: as many takes as its CPUs hold
+        jobs = [batch_ray.Job(p.take.name, (p.take.config, p.take.name), p.segments if len(p.segments) > 1 else [])
+                for p in to_run]
+        workers = cfg.workers
+        if workers is None and cfg.address is None:
+            workers = max(1, (os.cpu_count() or 1) // cfg.threads)
+        # The embedded Ray gets as many CPUs as the tasks can use at once (segments count one each).
+        info = batch_ray.connect(cfg.address, min(workers or 1, sum(j.weight for j in jobs)), cfg.threads)
+        if workers is None:   # a cluster without --workers: as many tasks as its CPUs hold
             workers = max(1, int(info.cpus // cfg.threads))
         report["ray"] = {**asdict(info), "workers": workers, "threads_per_take": cfg.threads}
         console.print(f"capture batch: {len(to_run)} of {len(planned)} takes to run "
                       f"({sum(p.frames for p in to_run)} frames) on {info.mode} Ray ({info.nodes} node(s), "
                       f"{info.cpus:g} CPUs), {workers} at a time x {cfg.threads} thread(s); output in {shoot.out}",
                       highlight=False)
-        jobs = [batch_ray.Job(p.take.name, (p.take.config, p.take.name), p.segments if len(p.segments) > 1 else [])
-                for p in to_run]
 
         with ShootProgress(to_run, cfg.progress, console) as prog:
             def on_result(job: batch_ray.Job, res: dict) -> None:
@@ -284,8 +285,9 @@ def batch_command(
                                  "docs/shoot_example.toml)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Batch output folder (default: the shoot file's "
                                        "[shoot] out, else runs/<shoot name> beside the shoot file)."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Takes run at a time (default: this machine's "
-                                          "cores / --threads; with --address, the cluster's CPUs / --threads)."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Tasks (takes, or segments of long takes) run at a "
+                                          "time (default: this machine's cores / --threads; with --address, the "
+                                          "cluster's CPUs / --threads)."),
     threads: int = typer.Option(1, "--threads", help="CPU cores (torch and detector threads) per take."),
     address: Optional[str] = typer.Option(None, "--address", help="Join an existing Ray cluster (e.g. "
                                           "'auto' or 'head-node:6379') instead of starting a local Ray."),

@@ -62,7 +62,7 @@ def connect(address: str | None, workers: int, threads: int) -> RayInfo:
         root = str(Path(__file__).resolve().parents[1])   # workers import capture even without an install
         path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)
         ray.init(num_cpus=workers * threads, include_dashboard=False, log_to_driver=False,
-                 logging_level=logging.WARNING, runtime_env={"env_vars": {"PYTHONPATH": path}})
+                 logging_level=logging.ERROR, runtime_env={"env_vars": {"PYTHONPATH": path}})
         mode, started = "embedded", True
     res = ray.cluster_resources()
     nodes = sum(1 for n in ray.nodes() if n.get("Alive"))

@@ -74,7 +74,9 @@ def claim_run_dir(out: Path, take_id: str, take_label: str, overwrite: bool) -> 
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise CaptureError(f"--out {out} is a file; give a folder")
-    if not out.exists() or not any(p.name not in BATCH_FILES for p in out.iterdir()):
+    # Hidden files (such as the temporary sibling of an atomic write in progress by a concurrent task of
+    # the same take) and the batch's files do not make a folder "not empty".
+    if not out.exists() or not any(p.name not in BATCH_FILES and not p.name.startswith(".") for p in out.iterdir()):
         return
     prev = read_json(out / RUN_JSON)
     if prev is None or prev.get("format") != RUN_FORMAT:

@@ -132,6 +132,8 @@ def load_shoot(path: str | os.PathLike, out: str | os.PathLike | None = None) ->
     shoot = _check_table(data.get("shoot", {}), "[shoot]", SHOOT_KEYS)
     defaults = _check_table(data.get("defaults", {}), "[defaults]", TAKE_SETTINGS)
     raw_takes = data.get("take", [])
+    if isinstance(raw_takes, dict):
+        raise CaptureError(f"'take' in {path.name} is a single table; write each take as [[take]] (two brackets)")
     if not isinstance(raw_takes, list) or not raw_takes:
         raise CaptureError(f"shoot file {path.name} lists no takes; add one [[take]] table per take with its video")
     name = shoot.get("name", path.stem)

@@ -1,7 +1,7 @@
 """``capture batch`` on the embedded local Ray: a shoot of short synthetic takes and one broken take.
 
-Ray is started once for the module (2 CPUs, as ``capture batch`` would start it on this machine); the
-command uses the Ray the process already has. The broken take (a text file named .mp4) is reported
+Ray is started once for the module (2 CPUs, by the code ``capture batch`` starts it with on this
+machine); the command uses the Ray the process already has. The broken take (a text file named .mp4) is reported
 and does not stop the others; a rerun does no work; a dead worker's take is retried once; the shoot
 file's mistakes are one-line errors; relative paths are resolved against the shoot file's folder.
 """
@@ -62,12 +62,13 @@ video = "takes/broken/take.mp4"
 
 @pytest.fixture(scope="module")
 def ray_local():
-    import ray
+    """The embedded local Ray, started by the command's own code once for the module (2 CPUs)."""
+    from capture import batch_ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
-             runtime_env={"env_vars": {"PYTHONPATH": str(Path(__file__).resolve().parents[1])}})
+    info = batch_ray.connect(None, workers=2, threads=1)
+    assert (info.mode, info.cpus, info.nodes) == ("embedded", 2.0, 1)
     yield
-    ray.shutdown()
+    batch_ray.disconnect(info)
 
 
 @pytest.fixture(scope="module")
@@ -195,6 +196,21 @@ def test_a_long_take_split_into_segments_is_stitched_from_them(shoot_dir, first_
         assert np.linalg.norm(v - truth[i], axis=1).mean() < 10.0
 
 
+def test_a_take_folder_is_claimed_beside_the_batch_files_and_concurrent_writes(tmp_path):
+    """Segments of one take claim its folder concurrently: the batch's log and another task's atomic write
+    in progress (a hidden temporary sibling) must not make the folder look like someone else's."""
+    from capture.run_store import claim_run_dir
+
+    out = tmp_path / "take"
+    out.mkdir()
+    (out / "batch_take.log").write_text("log")
+    (out / ".run.abc123.json").write_text("{")
+    claim_run_dir(out, "id", "take.mp4", overwrite=False)
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(CaptureError, match="not empty"):
+        claim_run_dir(out, "id", "take.mp4", overwrite=False)
+
+
 def test_segment_plan():
     from capture.batch_segments import plan_segments
 
@@ -218,16 +234,18 @@ def test_a_dead_worker_is_retried_once(tmp_path, ray_local):
         if not Path(marker).exists():
             Path(marker).write_text("died")
             os._exit(1)                                      # the worker process dies
-        counter.add.remote(name, 5)
+        ray.get(counter.add.remote(name, 5))                 # (a real take's last count may race its result)
         return {"take": name, "status": "done", "frames_fitted": 5}
 
     def always_fails(marker, name, attempt, threads, counter):
         return {"take": name, "status": "failed", "error": "boom", "retry": True}
 
-    results = {}
+    results, frames = {}, {}
     jobs = [batch_ray.Job("x", (str(tmp_path / "marker"), "x")), batch_ray.Job("y", ("-", "y"))]
-    batch_ray.run_tasks(jobs[:1], 1, 1, lambda j, r: results.setdefault(j.name, r), poll=0.1, task=dies_once)
+    batch_ray.run_tasks(jobs[:1], 1, 1, lambda j, r: results.setdefault(j.name, r), frames.update, poll=0.1,
+                        task=dies_once)
     assert results["x"]["status"] == "done" and results["x"]["attempt"] == 2
+    assert frames == {"x": 5}                                 # the frames the task reported reach the driver
     assert jobs[0].attempts[0]["status"] == "failed" and "worker" in jobs[0].attempts[0]["error"]
     batch_ray.run_tasks(jobs[1:], 1, 1, lambda j, r: results.setdefault(j.name, r), poll=0.1,
                         task=ray.remote(max_retries=0)(always_fails))
@@ -251,6 +269,7 @@ def test_shoot_file_mistakes_are_one_line_errors(tmp_path, monkeypatch):
         '[[take]]\nvideo = "a.mp4"\n': "has no actor",
         '[defaults]\nactor = "a"\n\n[[take]]\nname = "x"\n': "has no 'video'",
         '[defaults]\nactor = "a"\n': "lists no takes",
+        '[take]\nvideo = "a.mp4"\n': "[[take]] (two brackets)",
         'take = [': "not valid TOML",
     }
     for text, msg in cases.items():
@@ -258,4 +277,9 @@ def test_shoot_file_mistakes_are_one_line_errors(tmp_path, monkeypatch):
             load_shoot(_write(tmp_path / "bad.toml", text))
         assert msg in str(exc.value), (text, str(exc.value))
     assert main(["batch", str(_write(tmp_path / "bad.toml", ok + "bogus = 1\n"))]) == 2
+    # The documented example is a valid shoot file.
+    example = load_shoot(Path(__file__).resolve().parents[1] / "docs" / "shoot_example.toml")
+    assert [t.name for t in example.takes] == ["t001_neutral", "t002_dialogue", "t003_b_cam"]
+    assert example.takes[2].config.camera.name == "cam_b.json" and example.takes[1].config.frames == "120:2400"
+    assert example.takes[2].config.iterations == 800 and example.takes[0].config.iterations == 500
     assert main(["batch", str(tmp_path / "missing.toml")]) == 2
