@@ -4,7 +4,9 @@ A shoot of a few synthetic takes (``capture synth``, preset ``talk``, one seed p
 bundled demo actor (a copy: synthesis writes the detector's landmark embedding into the actor) is
 run twice from scratch, with ``--workers 1`` and ``--workers 2`` (1 thread per take), each into a
 fresh output folder. Printed per run: wall time (including Ray's start and the workers' imports),
-frames per second over the whole shoot, the per-take times, and the speed-up of 2 workers over 1.
+frames per second over the whole shoot, the per-take times, how many cores the tasks got while they
+ran (their CPU time over their wall time: on a machine shared with other jobs, 2 workers cannot
+gain more than that), and the speed-up of 2 workers over 1.
 
 Usage:
     python benchmarks/bench_batch.py [--takes 4] [--frames 40] [--size 640x360] [--iterations 300]
@@ -95,9 +97,12 @@ def main() -> None:
         frames = report["totals"]["frames_fitted"]
         assert report["totals"]["done"] == len(takes), report["totals"]
         per_take = [r["seconds"] for r in report["takes"]]
+        cpu = sum(r["cpu_seconds"] for r in report["takes"])
         results[workers] = frames / wall
         print(f"workers {workers}: {frames} frames in {wall:.1f} s wall -> {frames / wall:.3f} frames/s "
-              f"(per take {', '.join(f'{s:.1f}' for s in per_take)} s)", flush=True)
+              f"(per take {', '.join(f'{s:.1f}' for s in per_take)} s; the tasks used {cpu:.0f} CPU s: "
+              f"{cpu / sum(per_take):.2f} cores per task while running, {cpu / wall:.2f} cores over the wall time)",
+              flush=True)
     print(f"speed-up 2 workers / 1 worker: {results[2] / results[1]:.2f}x "
           f"({results[1]:.3f} -> {results[2]:.3f} frames/s)")
 

@@ -114,6 +114,7 @@ def _remotes():
             res["segments"] = [list(se) for se in segments]
             res["seconds_segments"] = [r.get("seconds") for r in segment_results]
             res["seconds"] += max(r.get("seconds") or 0.0 for r in segment_results)   # the critical path
+            res["cpu_seconds"] += sum(r.get("cpu_seconds") or 0.0 for r in segment_results)
             return res
 
         @ray.remote(num_cpus=0)

@@ -24,7 +24,7 @@ SUMMARY_CSV = "batch_summary.csv"
 #: Take statuses: ran and finished / skipped because done with the same settings / failed / stopped.
 STATUSES = ("done", "already done", "failed", "interrupted", "pending")
 CSV_FIELDS = ("take", "status", "frames_requested", "frames_fitted", "frames_skipped", "reprojection_mean_px",
-              "reprojection_median_px", "reprojection_max_px", "seconds", "attempts", "host", "out", "error")
+              "reprojection_median_px", "reprojection_max_px", "seconds", "cpu_seconds", "attempts", "host", "out", "error")
 
 
 def take_row(name: str, out: Path, result: dict | None, status: str, attempts: int = 0) -> dict:
@@ -35,6 +35,7 @@ def take_row(name: str, out: Path, result: dict | None, status: str, attempts: i
             "reprojection_mean_px": r.get("reprojection_mean_px"),
             "reprojection_median_px": r.get("reprojection_median_px"),
             "reprojection_max_px": r.get("reprojection_max_px"), "seconds": r.get("seconds"),
+            "cpu_seconds": r.get("cpu_seconds"),
             "attempts": attempts, "host": r.get("host"), "out": str(out), "error": r.get("error")}
 
 

@@ -157,7 +157,7 @@ def guarded(cfg: RunConfig, name: str, attempt: int, threads: int, work: Callabl
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / TAKE_LOG
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     base = {"take": name, "attempt": attempt, "host": socket.gethostname(), "pid": os.getpid(),
             "threads": threads, "started": _now()}
     old_threads = torch.get_num_threads()
@@ -185,6 +185,7 @@ def guarded(cfg: RunConfig, name: str, attempt: int, threads: int, work: Callabl
             torch.set_num_threads(old_threads)
             throttle.flush()
         res["seconds"] = time.perf_counter() - t0
+        res["cpu_seconds"] = time.process_time() - c0   # this worker process's CPU time (all its threads)
         log.write(f"{_now()} {what} {name} {res['status']} in {res['seconds']:.1f} s"
                   + (f": {res['error']}" if res.get("error") else "") + "\n")
     return res
