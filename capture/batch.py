@@ -148,7 +148,7 @@ class ShootProgress:
                     return Text(f"{fps:.2f} frames/s, {h}:{m:02d}:{s:02d} left")
 
             self.bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                TextColumn("frames"), Overall(), TimeElapsedColumn(), console=console)
+                                TextColumn("frames"), TimeElapsedColumn(), Overall(), console=console)
 
     def __enter__(self) -> "ShootProgress":
         if self.bar is not None:
