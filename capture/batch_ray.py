@@ -97,8 +97,10 @@ def _remotes():
             from capture.batch_take import guarded
 
             sink = None if counter is None else (lambda n: counter.add.remote(name, n))
-            return guarded(cfg, name, attempt, threads, lambda c: fit_segment(c, start, end), sink,
-                           what=f"segment {start}:{end} of take")
+            res = guarded(cfg, name, attempt, threads, lambda c: fit_segment(c, start, end), sink,
+                          what=f"segment {start}:{end} of take")
+            res["segment"] = [start, end]
+            return res
 
         @ray.remote(max_retries=0)
         def merge_task(cfg, name: str, segments: list, attempt: int, threads: int, *segment_results):
@@ -108,7 +110,7 @@ def _remotes():
             bad = [r for r in segment_results if r.get("status") != "done"]
             if bad:   # the take fails like its first failed segment (and is retried if that one may be)
                 r = bad[0]
-                return {**r, "error": f"segment {r.get('segment', '?')}: {r.get('error')}"}
+                return {**r, "error": f"segment {r['segment'][0]}:{r['segment'][1]}: {r.get('error')}"}
             res = guarded(cfg, name, attempt, threads, lambda c: result_from_report(merge_segments(c, segments)),
                           what="merge of the segments of take")
             res["segments"] = [list(se) for se in segments]

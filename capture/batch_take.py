@@ -6,10 +6,10 @@ a test can call directly). It runs :func:`capture.run.run_take` (the stages, cac
 ``OUT/batch_take.log`` and returns a plain-data result; it never raises for a bad take.
 
 A take is *done* when its run folder's ``batch_take.json`` (written by the batch driver) says so for
-the same key and ``run.json`` / ``report.json`` agree. The key hashes the take's resolved settings and
-fingerprints of its inputs (the video's content, the camera and detector files, the actor's weights
-and landmark embedding), so a changed setting or input runs the take again (whose stages then redo
-only what the change affects).
+the same key and ``run.json`` / ``report.json`` agree. The key hashes the take's settings and
+fingerprints of its inputs' contents (the video, the camera and detector files, the actor's weights
+and landmark embeddings; not their paths), so a changed setting or input runs the take again (whose
+stages then redo only what the change affects).
 """
 
 from __future__ import annotations
@@ -32,15 +32,17 @@ from capture.run_store import RUN_JSON, digest, file_sha256, read_json
 TAKE_JSON = "batch_take.json"
 TAKE_LOG = "batch_take.log"
 TAKE_FORMAT = "capture-batch-take"
-#: Settings of a take that do not change its outputs (left out of its key).
-_NOT_KEYED = ("out", "overwrite", "progress", "threads")
+#: Settings of a take left out of its key: those that do not change its outputs, and the input paths
+#: (their contents are fingerprinted instead, so a moved or copied shoot folder is still done).
+_NOT_KEYED = ("out", "overwrite", "progress", "threads", "video", "camera", "detector", "actor")
 
 
 def _sha(path: Path | None) -> str | None:
+    """The file's sha256; None for no file; a marker naming a file that cannot be read (never "done")."""
     try:
         return None if path is None else file_sha256(path)
     except OSError:
-        return None
+        return f"unreadable: {path}"
 
 
 def take_key(cfg: RunConfig, segments: list | None = None) -> str:

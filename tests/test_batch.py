@@ -224,6 +224,27 @@ def test_segment_plan():
             assert all(a[1] - b[0] == ov for a, b in zip(segs, segs[1:]))   # each seam shares the overlap
 
 
+def test_a_changed_setting_or_input_runs_the_take_again(shoot_dir, first_batch, tmp_path):
+    import dataclasses
+    import shutil
+
+    from capture.batch_take import done_result, take_key
+
+    cfg = load_shoot(shoot_dir / "shoot_ok.toml", shoot_dir / "out").takes[0].config
+    key = take_key(cfg)
+    assert done_result(cfg, key)["frames_fitted"] == FRAMES["a"]
+    assert take_key(dataclasses.replace(cfg, threads=4, progress=True)) == key      # no effect on the outputs
+    assert take_key(dataclasses.replace(cfg, iterations=21)) != key
+    assert take_key(cfg, segments=[(0, 14), (6, 20)]) != key
+    cam = json.loads(cfg.camera.read_text())
+    cam["K"][0][0] += 1.0
+    moved = tmp_path / "camera.json"
+    moved.write_text(json.dumps(cam))
+    assert take_key(dataclasses.replace(cfg, camera=moved)) != key                   # the file's content counts
+    shutil.copy(cfg.camera, moved)
+    assert take_key(dataclasses.replace(cfg, camera=moved)) == key                   # not its path
+
+
 def test_a_dead_worker_is_retried_once(tmp_path, ray_local):
     import ray
 
