@@ -12,7 +12,8 @@ its seams). Every segment is one Ray task (:func:`fit_segment`):
   window), into ``OUT/fit/segments/<key>/`` (resumable, the same chunked store).
 
 A last task per take (:func:`merge_segments`) stitches the segments into the take's fit
-(``OUT/fit/<key>/``, the key ``capture run`` uses for these landmarks and settings): frames of one
+(``OUT/fit/<key>/``, the key of ``capture run`` for these landmarks and settings plus the segments, so
+neither ``capture run`` nor an unsplit batch takes it for an unsplit fit): frames of one
 segment are taken as they are; in an overlap every per-frame output is the smoothstep blend from
 the earlier to the later segment (rotations re-orthonormalised, as at the window seams of
 :mod:`capture.fit_take`; frame codes, which live in each segment's own latent space, are the nearer
@@ -176,6 +177,7 @@ def merge_segments(cfg: RunConfig, segments: Sequence[tuple[int, int]]) -> dict:
     from capture.run_stages import (LANDMARKS, detect_stage, fit_dir_for, fit_is_done, fit_key, iter_fits,
                                     landmark_weights, run_fit_cached)
 
+    cfg = replace(cfg, segments=tuple((int(s), int(e)) for s, e in segments))   # in the fit's key
     inputs = resolve_inputs(cfg)
     _claim(inputs)
     detect_stage(inputs, inputs.out, progress=False)          # every detection segment is cached by now
@@ -183,9 +185,10 @@ def merge_segments(cfg: RunConfig, segments: Sequence[tuple[int, int]]) -> dict:
     key = fit_key(inputs, track)
     fdir = fit_dir_for(inputs.out, key)
     dirs = []
+    seg_inputs = replace(inputs, config=replace(cfg, segments=None))   # each segment is a plain fit
     for s, e in segments:
         seg_track = _segment_track(inputs, s, e)
-        skey = _segment_key(inputs, seg_track, s, e)
+        skey = _segment_key(seg_inputs, seg_track, s, e)
         d = _segment_dir(inputs.out, skey)
         if not fit_is_done(d, skey):
             raise RuntimeError(f"segment {s}:{e} of the take is not fitted (its task failed?)")

@@ -57,7 +57,7 @@ def take_key(cfg: RunConfig, segments: list | None = None) -> str:
     try:
         video = video_identity(cfg.video)
     except OSError:
-        video = None
+        video = f"unreadable: {cfg.video}"
     try:
         det = Path(cfg.detector) if cfg.detector is not None else default_detector(Path(cfg.video))
     except CaptureError:

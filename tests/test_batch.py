@@ -166,6 +166,9 @@ def test_a_long_take_split_into_segments_is_stitched_from_them(shoot_dir, first_
     whole, split = shoot_dir / "out" / "a", out / "a"
     report = json.loads((split / "report.json").read_text())
     assert report["segments"]["frames"] == [[0, 14], [6, 20]]
+    assert report["settings"]["segments"] == [[0, 14], [6, 20]]
+    stitched = [json.loads(k.read_text()) for k in split.glob("fit/*/key.json")]
+    assert len(stitched) == 1 and stitched[0]["segments"] == [[0, 14], [6, 20]]   # not an unsplit fit's key
     assert report["frames"]["fitted"] == 20
     # The layout of an unsplit run, and the very same detections (the detector's tracking units are
     # independent 32-frame blocks at absolute frame numbers).
