@@ -103,6 +103,17 @@ def _rel(path: Path, base: Path) -> str:
         return str(path)
 
 
+def _problems(p: PlannedTake) -> list[str]:
+    """What will make a take fail that a dry run can see without loading anything."""
+    c = p.take.config
+    out = [] if p.frames else ["video unreadable or missing"]
+    if not (Path(c.actor) / "actor.json").is_file():
+        out.append(f"no actor at {c.actor}")
+    out += [f"{what} {f} missing" for what, f in (("camera", c.camera), ("detector", c.detector))
+            if f is not None and not Path(f).is_file()]
+    return out
+
+
 def print_plan(shoot: Shoot, planned: list[PlannedTake], console) -> None:
     from rich.table import Table
 
@@ -114,8 +125,9 @@ def print_plan(shoot: Shoot, planned: list[PlannedTake], console) -> None:
         would = "skip (done, same settings)" if p.done else "run"
         if not p.done and len(p.segments) > 1:
             would += f" in {len(p.segments)} segments " + ", ".join(f"{s}:{e}" for s, e in p.segments)
-        if not p.done and p.frames == 0:
-            would += " (video unreadable or missing: will fail)"
+        problems = [] if p.done else _problems(p)
+        if problems:
+            would += f" (will fail: {'; '.join(problems)})"
         t.add_row(p.take.name, _rel(c.video, shoot.path.parent), str(p.frames), Path(c.actor).name, would)
     console.print(t)
     n_run = sum(p.done is None for p in planned)
