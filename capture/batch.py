@@ -293,10 +293,10 @@ def run_batch(cfg: BatchConfig, console=None) -> dict:
 
 
 def batch_command(
-    shoot: Path = typer.Argument(..., help="The shoot file (TOML: [shoot], [defaults], [[take]]; see "
-                                 "docs/shoot_example.toml)."),
+    shoot: Path = typer.Argument(..., help="The shoot file (TOML: \\[shoot], \\[defaults], "
+                                 "\\[\\[take]]; see docs/shoot_example.toml)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Batch output folder (default: the shoot file's "
-                                       "[shoot] out, else runs/<shoot name> beside the shoot file)."),
+                                       "\\[shoot] out, else runs/<shoot name> beside the shoot file)."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Tasks (takes, or segments of long takes) run at a "
                                           "time (default: this machine's cores / --threads; with --address, the "
                                           "cluster's CPUs / --threads)."),
@@ -309,11 +309,13 @@ def batch_command(
     dry_run: bool = typer.Option(False, "--dry-run", help="List the takes and what would run; run nothing."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show the shoot's progress bar."),
 ) -> None:
-    """Capture every take of a shoot (like capture run on each), in parallel on Ray.
-
-    Takes done before with the same settings are skipped; a failed take is retried once and never stops
-    the others. Exit status 1 when any take failed."""
+    # The docstring (the command's help) is set below: typer keeps its line breaks.
     report = run_batch(BatchConfig(shoot=shoot, out=out, workers=workers, threads=threads, address=address,
                                    segment_frames=segment_frames, dry_run=dry_run, progress=progress))
     if not dry_run and (report["totals"]["failed"] or report["totals"]["interrupted"]):
         raise typer.Exit(1)
+
+
+batch_command.__doc__ = ("Capture every take of a shoot (like capture run on each), in parallel on Ray.\n\n"
+                         "Takes done before with the same settings are skipped; a failed take is retried once "
+                         "and never stops the others. Exit status 1 when any take failed.")
