@@ -13,6 +13,7 @@ import typer
 
 from calib.cli import calibrate_command
 from capture.actor_cli import actor_app
+from capture.batch import batch_command
 from capture.demo import demo_command
 from capture.errors import CaptureError
 from capture.run import run_command
@@ -34,6 +35,7 @@ app.command("run")(run_command)
 app.command("fit3d")(fit3d_command)
 app.command("demo")(demo_command)
 app.command("retarget")(retarget_command)
+app.command("batch")(batch_command)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -40,6 +40,7 @@ class RunConfig:
     overwrite: bool = False
     progress: bool = True
     threads: int = 1                    # torch and onnxruntime threads
+    segments: tuple | None = None       # capture batch: the fit is stitched from these (start, end) segments
 
     def to_dict(self) -> dict:
         d = asdict(self)

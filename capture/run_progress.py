@@ -1,6 +1,25 @@
-"""Progress bars of ``capture run`` stages: frames done, frames per second and time left (rich)."""
+"""Progress bars of ``capture run`` stages: frames done, frames per second and time left (rich).
+
+:func:`progress_listener` lets a caller follow the stages without bars (``capture batch`` forwards
+the frames of each take to its shoot-wide progress).
+"""
 
 from __future__ import annotations
+
+import contextlib
+from typing import Callable, Iterator
+
+_LISTENERS: list[Callable[[str, int], None]] = []
+
+
+@contextlib.contextmanager
+def progress_listener(fn: Callable[[str, int], None]) -> Iterator[None]:
+    """Within the block every stage's ``advance(n)`` also calls ``fn(stage label, n)``, bars shown or not."""
+    _LISTENERS.append(fn)
+    try:
+        yield
+    finally:
+        _LISTENERS.remove(fn)
 
 
 class StageProgress:
@@ -28,6 +47,8 @@ class StageProgress:
         return self
 
     def advance(self, n: int = 1) -> None:
+        for fn in _LISTENERS:
+            fn(self.label, n)
         if self.bar is not None and n:
             self.bar.advance(self.task, n)
 

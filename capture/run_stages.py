@@ -75,12 +75,15 @@ def landmark_weights(track) -> np.ndarray:
 def fit_key(inputs, track) -> dict:
     cam = inputs.camera.camera
     cfg = inputs.config
-    return {"fit_settings": inputs.fit_settings.to_dict(), "window": cfg.window, "overlap": cfg.overlap,
-            "device": cfg.device, "actor_weights_sha256": inputs.actor_weights_sha256,
-            "embedding_sha256": inputs.embedding_sha256,
-            "camera": {"K": cam.K.tolist(), "dist": cam.dist.tolist(), "image_size": list(cam.image_size)},
-            "landmarks_sha256": array_digest(track.frame_index, track.points, landmark_weights(track),
-                                             track.face_found)}
+    key = {"fit_settings": inputs.fit_settings.to_dict(), "window": cfg.window, "overlap": cfg.overlap,
+           "device": cfg.device, "actor_weights_sha256": inputs.actor_weights_sha256,
+           "embedding_sha256": inputs.embedding_sha256,
+           "camera": {"K": cam.K.tolist(), "dist": cam.dist.tolist(), "image_size": list(cam.image_size)},
+           "landmarks_sha256": array_digest(track.frame_index, track.points, landmark_weights(track),
+                                            track.face_found)}
+    if getattr(cfg, "segments", None):   # stitched from segments by capture batch: another fit
+        key["segments"] = [[int(s), int(e)] for s, e in cfg.segments]
+    return key
 
 
 def fit_dir_for(out_dir: Path, key: dict) -> Path:

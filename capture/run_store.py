@@ -26,6 +26,9 @@ RUN_FORMAT = "capture-run"
 #: What a run folder may hold (removed by ``--overwrite`` when the folder holds another take).
 OWNED = ("run.json", "report.json", "export.json", "landmarks.npz", "detections", "fit", "meshes",
          "params.npz", "take.usd", "take.usda", "take.usdc", "overlay.mp4")
+#: Files ``capture batch`` keeps in a take's run folder (its log and state); they may be there before
+#: the folder is claimed (a take that failed on its input) and are not removed by ``--overwrite``.
+BATCH_FILES = ("batch_take.json", "batch_take.log")
 
 
 def digest(obj: Any) -> str:
@@ -71,7 +74,9 @@ def claim_run_dir(out: Path, take_id: str, take_label: str, overwrite: bool) -> 
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise CaptureError(f"--out {out} is a file; give a folder")
-    if not out.exists() or not any(out.iterdir()):
+    # Hidden files (such as the temporary sibling of an atomic write in progress by a concurrent task of
+    # the same take) and the batch's files do not make a folder "not empty".
+    if not out.exists() or not any(p.name not in BATCH_FILES and not p.name.startswith(".") for p in out.iterdir()):
         return
     prev = read_json(out / RUN_JSON)
     if prev is None or prev.get("format") != RUN_FORMAT:
