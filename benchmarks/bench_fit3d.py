@@ -28,7 +28,6 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse
 import json
-import resource
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -36,16 +35,14 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.gbs import fit_gbs_sequence
-from benchmarks.heldout import NARROW_FACE_NV, load_ict_identity, make_performance, sample_actor_split, DEFAULT_ICT
+from benchmarks.heldout import (DEFAULT_ICT, JAW_RANGES, NARROW_FACE_NV, load_ict_identity, make_performance,
+                               sample_actor_split)
+from benchmarks.takes import front_heatmap, peak_rss_mb, save_png
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_ACTOR = REPO / "capture" / "data" / "demo_actor"
 SAMPLE_JSON = REPO / "capture" / "data" / "sample_actor" / "sample.json"
 PAPER = {"aim_mm": 0.312, "gbs_mm": 0.834}
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def vertex_errors(fit: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -98,8 +95,6 @@ def save_figures(out: Path, faces: np.ndarray, neutral: np.ndarray, err: dict[st
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from capture.atomic import atomic_path
-
     paths = []
     fig, ax = plt.subplots(figsize=(10, 3.5))
     for name, e in err.items():
@@ -111,32 +106,16 @@ def save_figures(out: Path, faces: np.ndarray, neutral: np.ndarray, err: dict[st
     ax.set_title("3D fit to held-out expressions: error per frame (face region, 9,409 vertices)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    p = out / "fit3d_error_per_frame.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
+    paths.append(save_png(fig, out / "fit3d_error_per_frame.png"))
     plt.close(fig)
-    paths.append(p)
 
-    tri = faces[:, :3]
-    a, b, c = neutral[tri[:, 0]], neutral[tri[:, 1]], neutral[tri[:, 2]]
-    front = np.cross(b - a, c - a)[:, 2] > 0                      # ICT frame: z towards the face front
-    order = np.argsort(((a + b + c) / 3)[front, 2])             # painter's order, back to front
-    tri_f = tri[front][order]
     vmax = max(float(np.percentile(e.mean(0), 99)) for e in err.values())
     fig, axes = plt.subplots(1, len(err), figsize=(4.2 * len(err), 5))
     for ax, (name, e) in zip(np.atleast_1d(axes), err.items()):
-        v = e.mean(0)
-        pc = ax.tripcolor(neutral[:, 0], neutral[:, 1], tri_f, facecolors=v[tri_f].mean(1), cmap="magma",
-                          vmin=0, vmax=vmax, shading="flat")
-        ax.set_aspect("equal")
-        ax.axis("off")
-        ax.set_title(f"{name}: mean {e.mean():.3f} mm")
+        pc = front_heatmap(ax, neutral, faces, e.mean(0), vmax, f"{name}: mean {e.mean():.3f} mm")
     fig.colorbar(pc, ax=axes, shrink=0.8, label="mean error over frames (mm)")
-    p = out / "fit3d_error_heatmap.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
+    paths.append(save_png(fig, out / "fit3d_error_heatmap.png"))
     plt.close(fig)
-    paths.append(p)
     return paths
 
 
@@ -148,6 +127,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--frames", type=int, default=90, help="frames per sequence (30 fps)")
     ap.add_argument("--per-sequence", type=int, default=5, help="held-out expressions per sequence")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--peak", default="0.3,0.8", help="range of the held-out expressions' peak weights")
+    ap.add_argument("--control-frames", type=int, default=90, help="frames of a control sequence made of TRAINING "
+                    "shapes only (in the span of GBS: separates the fit and actor floor from generalisation; 0: none)")
     ap.add_argument("--preset", default="default", help="fit preset: default or paper")
     ap.add_argument("--iterations", type=int, help="override the preset's first-window iterations")
     ap.add_argument("--samples", type=int, default=1000, help="fitted vertices (capture fit3d: 1000)")
@@ -169,6 +151,7 @@ def main(argv: list[str] | None = None) -> dict:
         settings = replace(settings, iterations=args.iterations)
     if args.quick:
         args.sequences, args.frames, args.window, args.overlap, args.samples = 1, 8, 4, 1, 200
+        args.control_frames = 0
         settings = replace(settings, iterations=10, warm_iterations=5)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -176,7 +159,7 @@ def main(argv: list[str] | None = None) -> dict:
     training, held_out = sample_actor_split(SAMPLE_JSON)
     ident = load_ict_identity(Path(args.ict))
     perf = make_performance(ident, held_out, args.sequences, args.frames, per_sequence=args.per_sequence,
-                            seed=args.seed)
+                            seed=args.seed, peak=tuple(float(v) for v in args.peak.split(",")))
     truth = perf.vertices
     print(f"held-out performance: {json.dumps(perf.describe())}")
     print("  jaw: jawOpen / jawLeft / jawRight are TRAINING shapes, used at partial weights only; every other "
@@ -234,6 +217,18 @@ def main(argv: list[str] | None = None) -> dict:
           f"{1000 * tm.get('outputs_s', 0) / T:.0f}; {tm.get('iterations')} iterations in {tm.get('windows_solved')} "
           f"windows), " + ", ".join(f"{k} {1000 * v / T:.0f} ms" for k, v in gbs_s.items()))
     print(f"peak memory (process RSS): {rss_aim:.0f} MB after the AIM fit, {res['peak_rss_mb']:.0f} MB at the end")
+
+    if args.control_frames > 0:
+        ctrl = make_performance(ident, [n for n in training if n not in JAW_RANGES], 1, args.control_frames,
+                                per_sequence=args.per_sequence, seed=args.seed + 1000)
+        cf, _ = fit_aim(actor, ctrl.vertices, ctrl.sequence, settings, args.window, args.overlap, args.samples,
+                        args.threads)
+        cg = np.stack([f.vertices for f in fit_gbs_sequence(ctrl.vertices, ident.neutral, D, bounded=True)])
+        ea, eg = vertex_errors(cf, ctrl.vertices), vertex_errors(cg, ctrl.vertices)
+        res["control_training_shapes"] = {"performance": ctrl.describe(), "aim": stats(ea), "gbs": stats(eg),
+                                          "aim_narrow_face": stats(ea[:, :NARROW_FACE_NV])}
+        print(f"control (training shapes only, {args.control_frames} frames): AIM mean {ea.mean():.3f} mm (narrow "
+              f"face {ea[:, :NARROW_FACE_NV].mean():.3f}), GBS [0,1] {eg.mean():.3f} mm (in its span)")
 
     rows = per_expression(perf, ident, err["AIM (fit3d)"], err["GBS [0,1]"], held_out)
     res["per_expression"] = rows

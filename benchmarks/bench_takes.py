@@ -148,6 +148,7 @@ def main(argv: list[str] | None = None) -> dict:
         actor = load_actor(str(actor_copy))
         faces = np.asarray(actor.template.faces)
         for name, motion, seed, n_lm, noise, dist in takes:
+            print(f"rendering and fitting {name} ...", flush=True)
             t0 = time.perf_counter()
             take = synth(actor_copy, Path(tmp) / name, args.frames, args.size, motion, seed, n_lm, dist)
             render_s = time.perf_counter() - t0

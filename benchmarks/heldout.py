@@ -6,7 +6,7 @@ on the 100 identity modes of the Light model; face region, vertices 0..9408) wit
 
 * expressions the actor never saw (``held_out_expressions`` of ``sample.json``, ``mouthClose``
   excluded: it is a corrective shape that only makes sense on top of ``jawOpen``), several per
-  sequence, each on a smooth random weight curve at PARTIAL weights (peaks 0.3 .. 0.8),
+  sequence, each on a smooth random weight curve at PARTIAL weights (peaks 0.3 .. 0.8 by default),
 * jaw motion from the ICT jaw shapes (``jawOpen`` talking curve 0 .. 0.45, ``jawLeft`` /
   ``jawRight`` 0 .. 0.3): these four are TRAINING shapes, used here only at partial weights and mixed
   with the held-out shapes,
@@ -99,8 +99,13 @@ def _bumps(rng: np.random.Generator, T: int, fps: float, peak: float) -> np.ndar
 
 
 def make_performance(ident: ICTIdentity, held_out: list[str], sequences: int = 4, frames: int = 90,
-                     fps: float = 30.0, per_sequence: int = 5, seed: int = 0) -> Performance:
-    """``sequences`` x ``frames`` frames of held-out expressions + partial jaw shapes + rigid head motion."""
+                     fps: float = 30.0, per_sequence: int = 5, seed: int = 0,
+                     peak: tuple[float, float] = (0.3, 0.8)) -> Performance:
+    """``sequences`` x ``frames`` frames of held-out expressions + partial jaw shapes + rigid head motion.
+
+    Each sequence animates ``per_sequence`` expressions drawn from ``held_out``, each with 1-3 smooth
+    activations whose peak weight is drawn uniformly from ``peak`` (times 0.5 .. 1 per activation).
+    """
     pool = [n for n in held_out if n not in EXCLUDED and n in ident.deltas]
     if not pool:
         raise ValueError("no held-out expression available in the ICT model")
@@ -112,7 +117,7 @@ def make_performance(ident: ICTIdentity, held_out: list[str], sequences: int = 4
         rng = np.random.default_rng([seed, s])
         w = np.zeros((frames, len(names)))
         for k in rng.choice(len(pool), size=min(per_sequence, len(pool)), replace=False):
-            w[:, k] = _bumps(rng, frames, fps, rng.uniform(0.3, 0.8))
+            w[:, k] = _bumps(rng, frames, fps, rng.uniform(*peak))
         jo = names.index("jawOpen")
         w[:, jo] = np.clip(_curve(rng, frames, fps, 4.0, -0.1, JAW_RANGES["jawOpen"]), 0, None)
         side = names.index("jawLeft" if s % 2 == 0 else "jawRight")
