@@ -8,11 +8,14 @@ motion stays continuous). True landmarks + 0.5 px noise. Every configuration run
 process, which streams :func:`capture.fit_take.fit_take` (no frame is kept) and reports ms per
 frame, mean 3D error (mm) and its peak resident memory (``ru_maxrss``, MB).
 
-* landmark series: 100 frames, default preset;
-* length series: 1,000 landmarks, the default preset CAPPED to ``--cap-iterations`` /
-  ``--cap-warm`` iterations per window (labelled so) so that 10,000 frames finish in minutes; the
-  engine's per-frame overhead and memory are what this series shows. ``--full`` runs the uncapped
-  default preset instead (about an hour for 10,000 frames on 2 shared cores).
+* landmark series: 100 frames, 100 / 1,000 / 10,000 landmarks;
+* length series: 1,000 landmarks, 100 / 1,000 / 10,000 frames.
+
+Both run the default preset CAPPED to ``--cap-iterations`` (first window) / ``--cap-warm`` (later
+windows) iterations, labelled so, so that 10,000 frames and 10,000 landmarks finish in minutes: what
+the series show is how time per frame and memory grow with the work, not the accuracy of a full
+fit. ``--full`` runs the uncapped default preset (hours for the largest configurations on 2 shared
+cores).
 
 Usage:
     python benchmarks/bench_scale.py [--threads 1] [--full] [--quick]
@@ -108,7 +111,8 @@ def plot(out: Path, rows: list[dict]) -> Path:
         ax.set_xlabel(key)
         ax.set_ylabel("ms per frame")
         ax2.set_ylabel("peak RSS (MB)", color="C1")
-        ax.set_title(f"{series} series" + (" (capped iterations)" if rs and rs[0].get("cap") else ""), fontsize=9)
+        cap = rs[0].get("cap") if rs else None
+        ax.set_title(f"{series} series" + (f" (capped: {cap[0]} / {cap[1]} iterations)" if cap else ""), fontsize=9)
     fig.tight_layout()
     p = save_png(fig, out / "scale.png")
     plt.close(fig)
@@ -123,7 +127,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--landmarks", default="100,1000,10000")
     ap.add_argument("--cap-iterations", type=int, default=40)
     ap.add_argument("--cap-warm", type=int, default=10)
-    ap.add_argument("--full", action="store_true", help="length series with the uncapped default preset")
+    ap.add_argument("--full", action="store_true", help="both series with the uncapped default preset (slow)")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results"))
     ap.add_argument("--quick", action="store_true", help="check that it runs: 6 / 12 frames, 50 landmarks")
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -150,8 +154,8 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"take: {take_frames} frames {size}, {max(counts)} landmarks, rendered in "
               f"{time.perf_counter() - t0:.0f} s", flush=True)
         base = {"actor": str(actor_copy), "take": str(take), "threads": args.threads}
-        configs = [{**base, "series": "landmarks", "frames": take_frames, "landmarks": n, "cap": None if not
-                    args.quick else cap} for n in counts]
+        configs = [{**base, "series": "landmarks", "frames": take_frames, "landmarks": n, "cap": cap}
+                   for n in counts]
         configs += [{**base, "series": "length", "frames": n, "landmarks": min(1000, max(counts)), "cap": cap}
                     for n in lengths]
         for cfg in configs:
@@ -164,9 +168,12 @@ def main(argv: list[str] | None = None) -> dict:
                   f"mean {r['mean_mm']:.3f} mm, peak RSS {r['peak_rss_mb']:.0f} MB (inputs "
                   f"{r['input_arrays_mb']:.0f} MB, before fit {r['rss_inputs_loaded_mb']:.0f} MB); "
                   f"load {r['load_average']:.1f}", flush=True)
+            res = {"rows": rows, "take_frames": take_frames, "size": size}
+            p = out / ("scale_quick.json" if args.quick else "scale.json")
+            with atomic_path(p) as tmp_json:   # after every row: an interrupted run keeps what it measured
+                Path(tmp_json).write_text(json.dumps(res, indent=1), encoding="utf-8")
     fig = plot(out, rows)
-    res = {"rows": rows, "figure": str(fig), "take_frames": take_frames, "size": size}
-    p = out / ("scale_quick.json" if args.quick else "scale.json")
+    res["figure"] = str(fig)
     with atomic_path(p) as tmp_json:
         Path(tmp_json).write_text(json.dumps(res, indent=1), encoding="utf-8")
     print(f"figure: {fig}; numbers: {p}")
