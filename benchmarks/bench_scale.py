@@ -9,7 +9,7 @@ process, which streams :func:`capture.fit_take.fit_take` (no frame is kept) and 
 frame, mean 3D error (mm) and its peak resident memory (``ru_maxrss``, MB).
 
 * landmark series: 100 frames, 100 / 1,000 / 10,000 landmarks;
-* length series: 1,000 landmarks, 100 / 1,000 / 10,000 frames.
+* length series: ``--length-landmarks`` (100) landmarks, 100 / 1,000 / 10,000 frames.
 
 Both run the default preset CAPPED to ``--cap-iterations`` (first window) / ``--cap-warm`` (later
 windows) iterations, labelled so, so that 10,000 frames and 10,000 landmarks finish in minutes: what
@@ -126,7 +126,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--lengths", default="100,1000,10000")
     ap.add_argument("--landmarks", default="100,1000,10000")
     ap.add_argument("--cap-iterations", type=int, default=40)
-    ap.add_argument("--cap-warm", type=int, default=10)
+    ap.add_argument("--cap-warm", type=int, default=2)
+    ap.add_argument("--length-landmarks", type=int, default=100, help="landmarks of the length series")
     ap.add_argument("--full", action="store_true", help="both series with the uncapped default preset (slow)")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results"))
     ap.add_argument("--quick", action="store_true", help="check that it runs: 6 / 12 frames, 50 landmarks")
@@ -156,7 +157,8 @@ def main(argv: list[str] | None = None) -> dict:
         base = {"actor": str(actor_copy), "take": str(take), "threads": args.threads}
         configs = [{**base, "series": "landmarks", "frames": take_frames, "landmarks": n, "cap": cap}
                    for n in counts]
-        configs += [{**base, "series": "length", "frames": n, "landmarks": min(1000, max(counts)), "cap": cap}
+        configs += [{**base, "series": "length", "frames": n, "landmarks": min(args.length_landmarks, max(counts)),
+                     "cap": cap}
                     for n in lengths]
         for cfg in configs:
             r = run_child(cfg)
