@@ -111,6 +111,8 @@ def plot(out: Path, rows: list[dict]) -> Path:
         ax.set_xlabel(key)
         ax.set_ylabel("ms per frame")
         ax2.set_ylabel("peak RSS (MB)", color="C1")
+        ax2.set_ylim(0, 1.1 * max([r["peak_rss_mb"] for r in rs], default=1))   # from 0: flat looks flat
+        ax.set_ylim(0, 1.1 * max([r["ms_per_frame"] for r in rs], default=1))
         cap = rs[0].get("cap") if rs else None
         ax.set_title(f"{series} series" + (f" (capped: {cap[0]} / {cap[1]} iterations)" if cap else ""), fontsize=9)
     fig.tight_layout()
