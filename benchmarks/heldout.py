@@ -1,0 +1,139 @@
+"""Held-out 3D performances of the bundled ICT sample actor (pure data generation, no fitting).
+
+The sample actor (``capture/data/sample_actor``) is one ICT FaceKit identity with a neutral and 19
+training expressions. A held-out performance animates the SAME identity (``sample_identity_coeffs``
+on the 100 identity modes of the Light model; face region, vertices 0..9408) with
+
+* expressions the actor never saw (``held_out_expressions`` of ``sample.json``, ``mouthClose``
+  excluded: it is a corrective shape that only makes sense on top of ``jawOpen``), several per
+  sequence, each on a smooth random weight curve at PARTIAL weights (peaks 0.3 .. 0.8 by default),
+* jaw motion from the ICT jaw shapes (``jawOpen`` talking curve 0 .. 0.45, ``jawLeft`` /
+  ``jawRight`` 0 .. 0.3): these four are TRAINING shapes, used here only at partial weights and mixed
+  with the held-out shapes,
+* a smooth rigid head motion (yaw +-20 deg, pitch +-10, roll +-6, translation +-15 mm about the
+  face's bounding-box centre).
+
+The ICT model is linear: ``X = R (N + sum_k w_k D_k - c) + c + t`` with ``N`` the identity's
+neutral and ``D_k`` the expression deltas (all in mm, ICT frame: x = actor's left, y up, z towards the
+face front).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.interpolate import PchipInterpolator
+from scipy.spatial.transform import Rotation
+
+FACE_NV = 9409                 # ICT face region: vertices 0..9408
+NARROW_FACE_NV = 6706          # ICT narrow face (no scalp, ears, neck): vertices 0..6705
+N_IDENTITY = 100               # the Light model's identity modes
+CM_TO_MM = 10.0
+DEFAULT_ICT = Path("/work/shared/assets/ict_facekit/derived/ict_facekit_light.npz")
+JAW_RANGES = {"jawOpen": 0.45, "jawLeft": 0.3, "jawRight": 0.3}
+EXCLUDED = ("mouthClose",)
+
+
+@dataclass
+class ICTIdentity:
+    """The sample identity's face region and expression deltas (mm)."""
+
+    neutral: np.ndarray                 # (V, 3) mm
+    deltas: dict[str, np.ndarray]       # name -> (V, 3) mm, all 53 ICT expressions
+
+
+def load_ict_identity(npz: Path = DEFAULT_ICT, identity_coeffs: np.ndarray | None = None) -> ICTIdentity:
+    """The ICT Light model at ``identity_coeffs`` (default: the npz's ``sample_identity_coeffs``), face region, mm."""
+    npz = Path(npz)
+    if not npz.is_file():
+        raise FileNotFoundError(f"ICT FaceKit arrays not found at {npz}; pass --ict")
+    with np.load(npz, allow_pickle=False) as d:
+        c = d["sample_identity_coeffs"] if identity_coeffs is None else identity_coeffs
+        c = np.asarray(c, np.float64)[:N_IDENTITY]
+        ident = np.tensordot(c, d["identity_deltas"][:N_IDENTITY, :FACE_NV].astype(np.float64), axes=1)
+        neutral = (d["neutral"][:FACE_NV] + ident) * CM_TO_MM
+        deltas = {str(n): d["expression_deltas"][i, :FACE_NV].astype(np.float64) * CM_TO_MM
+                  for i, n in enumerate(d["expression_names"])}
+    return ICTIdentity(neutral, deltas)
+
+
+@dataclass
+class Performance:
+    """A held-out performance: ``vertices[j] = R_j (neutral + weights[j] @ deltas - centre) + centre + t_j``."""
+
+    vertices: np.ndarray        # (T, V, 3) mm
+    names: list[str]            # expression names of the weight columns
+    weights: np.ndarray         # (T, K) in [0, 1]
+    head_R: np.ndarray          # (T, 3, 3)
+    head_t: np.ndarray          # (T, 3) mm
+    sequence: np.ndarray        # (T,) sequence index of each frame
+    fps: float
+
+    def describe(self) -> dict:
+        active = {n: float(self.weights[:, k].max()) for k, n in enumerate(self.names) if self.weights[:, k].max() > 0}
+        rot = Rotation.from_matrix(self.head_R).as_euler("yxz", degrees=True)
+        return {"frames": int(len(self.vertices)), "sequences": int(self.sequence.max() + 1), "fps": self.fps,
+                "max_weight": active, "head_rotation_deg_absmax_yaw_pitch_roll": np.abs(rot).max(0).round(1).tolist(),
+                "head_translation_mm_absmax": np.abs(self.head_t).max(0).round(1).tolist()}
+
+
+def _curve(rng: np.random.Generator, T: int, fps: float, keys_per_s: float, lo: float, hi: float) -> np.ndarray:
+    """A smooth random curve in [lo, hi]: random keys every 1/keys_per_s s, monotone cubic between them."""
+    n = max(2, int(np.ceil(T / fps * keys_per_s)) + 1)
+    kt = np.linspace(0, T - 1, n)
+    kv = rng.uniform(lo, hi, n)
+    return PchipInterpolator(kt, kv)(np.arange(T))
+
+
+def _bumps(rng: np.random.Generator, T: int, fps: float, peak: float) -> np.ndarray:
+    """An expression curve: 0 at rest with 1-3 smooth activations (attack/release ~0.3 s) up to ``peak``."""
+    out = np.zeros(T)
+    t = np.arange(T) / fps
+    for _ in range(rng.integers(1, 4)):
+        c, width, amp = rng.uniform(0, T / fps), rng.uniform(0.4, 1.5), rng.uniform(0.5, 1.0) * peak
+        out = np.maximum(out, amp * np.exp(-0.5 * ((t - c) / (width / 2)) ** 2))
+    return out
+
+
+def make_performance(ident: ICTIdentity, held_out: list[str], sequences: int = 4, frames: int = 90,
+                     fps: float = 30.0, per_sequence: int = 5, seed: int = 0,
+                     peak: tuple[float, float] = (0.3, 0.8)) -> Performance:
+    """``sequences`` x ``frames`` frames of held-out expressions + partial jaw shapes + rigid head motion.
+
+    Each sequence animates ``per_sequence`` expressions drawn from ``held_out``, each with 1-3 smooth
+    activations whose peak weight is drawn uniformly from ``peak`` (times 0.5 .. 1 per activation).
+    """
+    pool = [n for n in held_out if n not in EXCLUDED and n in ident.deltas]
+    if not pool:
+        raise ValueError("no held-out expression available in the ICT model")
+    names = pool + list(JAW_RANGES)
+    D = np.stack([ident.deltas[n] for n in names])                      # (K, V, 3)
+    centre = (ident.neutral.min(0) + ident.neutral.max(0)) / 2
+    W, R, tr, seq = [], [], [], []
+    for s in range(sequences):
+        rng = np.random.default_rng([seed, s])
+        w = np.zeros((frames, len(names)))
+        for k in rng.choice(len(pool), size=min(per_sequence, len(pool)), replace=False):
+            w[:, k] = _bumps(rng, frames, fps, rng.uniform(*peak))
+        jo = names.index("jawOpen")
+        w[:, jo] = np.clip(_curve(rng, frames, fps, 4.0, -0.1, JAW_RANGES["jawOpen"]), 0, None)
+        side = names.index("jawLeft" if s % 2 == 0 else "jawRight")
+        w[:, side] = np.clip(_curve(rng, frames, fps, 1.0, -0.15, JAW_RANGES["jawLeft"]), 0, None)
+        eul = np.stack([_curve(rng, frames, fps, 1.0, -a, a) for a in (20.0, 10.0, 6.0)], 1)
+        W.append(np.clip(w, 0, 1))
+        R.append(Rotation.from_euler("yxz", eul, degrees=True).as_matrix())
+        tr.append(np.stack([_curve(rng, frames, fps, 1.0, -15.0, 15.0) for _ in range(3)], 1))
+        seq.append(np.full(frames, s))
+    W, R, tr = np.concatenate(W), np.concatenate(R), np.concatenate(tr)
+    local = ident.neutral + np.einsum("tk,kvc->tvc", W, D) - centre
+    verts = np.einsum("tij,tvj->tvi", R, local) + centre + tr[:, None]
+    return Performance(verts, names, W, R, tr, np.concatenate(seq), fps)
+
+
+def sample_actor_split(sample_json: Path) -> tuple[list[str], list[str]]:
+    """(training shapes, held-out expressions) of the bundled sample actor's ``sample.json``."""
+    info = json.loads(Path(sample_json).read_text(encoding="utf-8"))
+    return list(info["training_shapes"]), list(info["held_out_expressions"])

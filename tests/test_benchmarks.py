@@ -1,0 +1,118 @@
+"""The benchmark helpers (GBS baseline, held-out performance, take metrics) and the quick modes of the
+benchmark scripts (they still run; their figures are not checked)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import lsq_linear
+from scipy.spatial.transform import Rotation
+
+from benchmarks.gbs import fit_gbs, fit_gbs_sequence
+from benchmarks.heldout import DEFAULT_ICT, EXCLUDED, JAW_RANGES
+from benchmarks.takes import accuracy
+
+needs_ict = pytest.mark.skipif(not DEFAULT_ICT.is_file(), reason=f"ICT FaceKit arrays not at {DEFAULT_ICT}")
+
+
+def _blendshapes(rng, V=300, K=6):
+    neutral = rng.normal(0, 30.0, (V, 3))
+    deltas = rng.normal(0, 2.0, (K, V, 3)) * (rng.random((K, V, 1)) < 0.3)   # local-ish shapes
+    return neutral, deltas
+
+
+@pytest.mark.parametrize("bounded", [True, False])
+def test_gbs_recovers_pose_and_weights_in_span(bounded):
+    rng = np.random.default_rng(0)
+    neutral, deltas = _blendshapes(rng)
+    w = rng.uniform(0.1, 0.9, len(deltas))
+    R = Rotation.from_euler("yxz", [20, -10, 5], degrees=True).as_matrix()
+    t = np.array([5.0, -3.0, 40.0])
+    X = (neutral + np.tensordot(w, deltas, axes=1)) @ R.T + t
+    fit = fit_gbs(X, neutral, deltas, bounded=bounded, tol=1e-10, max_iterations=200)
+    np.testing.assert_allclose(fit.weights, w, atol=1e-5)
+    np.testing.assert_allclose(fit.R, R, atol=1e-6)
+    assert np.abs(fit.vertices - X).max() < 1e-3
+
+
+def test_gbs_bounded_weights_are_the_full_least_squares_optimum_at_the_fitted_pose():
+    """At convergence the Cholesky-reduced K x K solve must equal scipy's bounded solve of the full 3V system."""
+    rng = np.random.default_rng(1)
+    neutral, deltas = _blendshapes(rng)
+    w = rng.uniform(-0.5, 1.5, len(deltas))                 # outside [0, 1]: the bounds bind
+    X = neutral + np.tensordot(w, deltas, axes=1) + rng.normal(0, 0.3, neutral.shape)
+    fit = fit_gbs(X, neutral, deltas, tol=1e-12, max_iterations=500)
+    y = ((X - fit.t) @ fit.R - neutral).ravel()
+    ref = lsq_linear(deltas.reshape(len(deltas), -1).T, y, bounds=(0, 1), method="trf", tol=1e-12).x
+    np.testing.assert_allclose(fit.weights, ref, atol=1e-4)
+    assert fit.weights.min() >= 0 and fit.weights.max() <= 1
+    seq = fit_gbs_sequence(np.stack([X, X]), neutral, deltas)
+    np.testing.assert_allclose(seq[1].weights, seq[0].weights, atol=1e-4)
+
+
+def test_accuracy_of_the_truth_itself_and_of_a_constant_offset():
+    rng = np.random.default_rng(2)
+    truth = np.cumsum(rng.normal(0, 0.5, (40, 20, 3)), axis=0)
+    a = accuracy(truth, truth, np.zeros(40))
+    assert a["mean_mm"] == 0 and a["jitter_error_mm"] == 0 and a["jitter_excess_mm"] == 0
+    b = accuracy(truth + [0.3, 0.4, 0.0], truth, np.ones(40))    # a rigid offset is no jitter
+    assert b["mean_mm"] == pytest.approx(0.5) and b["jitter_error_mm"] < 1e-9 and b["rms_px"] == 1.0
+
+
+def test_pingpong_is_continuous():
+    from benchmarks.bench_scale import pingpong
+
+    idx = pingpong(25, 5)
+    assert idx.tolist()[:10] == [0, 1, 2, 3, 4, 3, 2, 1, 0, 1]
+    assert np.abs(np.diff(idx)).max() == 1
+
+
+@needs_ict
+def test_heldout_performance_uses_only_held_out_and_partial_jaw_shapes():
+    from benchmarks.bench_fit3d import SAMPLE_JSON
+    from benchmarks.heldout import load_ict_identity, make_performance, sample_actor_split
+
+    training, held_out = sample_actor_split(SAMPLE_JSON)
+    ident = load_ict_identity()
+    perf = make_performance(ident, held_out, sequences=2, frames=20, seed=3)
+    active = [n for k, n in enumerate(perf.names) if perf.weights[:, k].max() > 0]
+    for n in active:
+        assert (n in held_out and n not in EXCLUDED) or (n in training and n in JAW_RANGES)
+        if n in JAW_RANGES:
+            assert perf.weights[:, perf.names.index(n)].max() <= JAW_RANGES[n] + 1e-9
+    assert perf.weights.min() >= 0 and perf.weights.max() <= 1
+    assert perf.vertices.shape == (40, 9409, 3)
+    # the mesh is the rigidly moved linear model: undoing the pose gives neutral + w @ D
+    j = 27
+    c = (ident.neutral.min(0) + ident.neutral.max(0)) / 2
+    local = (perf.vertices[j] - c - perf.head_t[j]) @ perf.head_R[j] + c
+    D = np.stack([ident.deltas[n] for n in perf.names])
+    np.testing.assert_allclose(local, ident.neutral + np.tensordot(perf.weights[j], D, axes=1), atol=1e-9)
+
+
+@needs_ict
+def test_bench_fit3d_quick(tmp_path):
+    from benchmarks.bench_fit3d import main
+
+    res = main(["--quick", "--out", str(tmp_path)])
+    assert set(res["methods"]) == {"AIM (fit3d)", "GBS [0,1]", "GBS unbounded"}
+    assert all(np.isfinite(m["face"]["mean_mm"]) for m in res["methods"].values())
+    assert (tmp_path / "fit3d_error_heatmap.png").stat().st_size > 0 and (tmp_path / "fit3d.json").is_file()
+
+
+@pytest.mark.slow
+def test_bench_takes_quick(tmp_path):
+    from benchmarks.bench_takes import main
+
+    res = main(["--quick", "--out", str(tmp_path)])
+    assert len(res["takes"]) == 1 and np.isfinite(res["takes"][0]["default"]["mean_mm"])
+    assert (tmp_path / "takes_time_per_stage.png").is_file()
+
+
+@pytest.mark.slow
+def test_bench_scale_quick(tmp_path):
+    from benchmarks.bench_scale import main
+
+    res = main(["--quick", "--out", str(tmp_path)])
+    assert [r["frames"] for r in res["rows"] if r["series"] == "length"] == [6, 12]
+    assert all(r["peak_rss_mb"] > 0 for r in res["rows"]) and (tmp_path / "scale.png").is_file()
