@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import torch
 from torch import nn
@@ -60,7 +60,8 @@ class FitSettings:
     pose_accel_weight: float = 0.0
     """Weight of the squared second differences over frames of the head and jaw transforms
     (translations in ``length_unit_mm``, rotation matrices unit-free): a smooth-motion prior that
-    removes per-frame depth jitter of monocular fits. Not in the paper (0 there)."""
+    removes per-frame depth jitter of monocular fits. Not in the paper (0 there). This and the next
+    two priors apply to 2D fits only (:func:`monocular_priors`)."""
     coeff_temporal_weight: float = 0.0
     """Weight of the squared first differences over frames of the coefficients ``w_j(c)`` (mean over
     points): keeps expressions from flickering. Not in the paper (0 there)."""
@@ -77,6 +78,10 @@ class FitSettings:
     """The same after the Adam iterations (0 = none)."""
     lm_tol: float = 1e-6
     """Levenberg-Marquardt stops when an accepted step lowers the energy by less than this fraction."""
+    adam_on_landmarks: bool = True
+    """Run the Adam iterations on 2D landmark fits (3D fits always run them). False: a 2D fit is the
+    Levenberg-Marquardt solve of the base alone and the networks keep their zero start (on synthetic
+    takes with 1,000 landmarks the Adam phase changed the error by < 0.001 mm at 10x the time)."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -86,7 +91,13 @@ FIT_PRESETS: dict[str, FitSettings] = {
     # hidden 64: 3x cheaper than 128 per iteration at the same accuracy on synthetic takes;
     # temporal 0.5: codes of neighbouring frames held closer than the paper's 0.05, which halves the
     # per-frame depth jitter of monocular fits (benchmarks/bench_fit.py).
-    "default": FitSettings(hidden=64, temporal_weight=0.5, early_stop_tol=2e-3),  # PLACEHOLDER
+    # The base (head and jaw pose, per-frame coefficient offsets) by Levenberg-Marquardt before and
+    # after Adam, with smooth-motion, jaw-at-rest and coefficient-smoothness priors; on 2D takes the
+    # solve is the base alone (adam_on_landmarks). Weights chosen on a synthetic 1280x720 take of the
+    # demo actor with 1,000 landmarks (benchmarks/bench_fit.py, BENCHMARKS.md "Take fitting").
+    "default": FitSettings(hidden=64, lr=1e-2, temporal_weight=0.5, early_stop_tol=2e-3, lm_iterations=10,
+                           lm_polish_iterations=10, pose_accel_weight=10.0, coeff_temporal_weight=1.0,
+                           jaw_prior_weight=0.01, adam_on_landmarks=False),
     "paper": FitSettings(iterations=10_000, lr=1e-3, lr_final_fraction=1.0, coeff_weight=0.75, robust_px=0.0,
                          warm_iterations=None),
 }
@@ -203,8 +214,11 @@ class SequenceFit(nn.Module):
                          frames: slice | None = None) -> torch.Tensor:
         """F_W's part of ``w_j(c)`` ``(J, P, E)`` (without the base offset ``coeff0``)."""
         c = actor.points if points is None else points
-        x = (c - actor.center) / actor.scale
         codes = self.codes if frames is None else self.codes[frames]
+        last = self.F_W.net[-1]
+        if not torch.is_grad_enabled() and not (last.weight.any() or last.bias.any()):
+            return c.new_zeros(codes.shape[0], c.shape[0], last.out_features)  # F_W still at its zero start
+        x = (c - actor.center) / actor.scale
         # F_W's first layer on [z_j, c] split into a per-frame and a per-point part (the same
         # function as concatenating the inputs, without building the (J, P, f + 3) input).
         first = self.F_W.net[0]
@@ -254,9 +268,18 @@ def observation_weights(obs: Observations, dtype: torch.dtype) -> torch.Tensor:
     return (obs.weights if obs.weights is not None else valid.to(dtype)) * valid
 
 
+def monocular_priors(s: FitSettings, obs: Observations) -> FitSettings:
+    """``s`` as it applies to ``obs``: the smooth-motion, coefficient-smoothness and jaw priors steady
+    monocular (2D-only) fits; with 3D observations there is no depth ambiguity and they are off."""
+    if obs.points3d is None:
+        return s
+    return replace(s, pose_accel_weight=0.0, coeff_temporal_weight=0.0, jaw_prior_weight=0.0)
+
+
 def energy_terms(actor: ActorAtPoints, obs: Observations, s: FitSettings, pose: FramePose,
                  w: torch.Tensor) -> dict[str, torch.Tensor]:
     """The terms of the fitting energy that depend on the poses and coefficients ``w (J, P, E)``."""
+    s = monocular_priors(s, obs)
     face = pose_face(actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t, w)
     terms: dict[str, torch.Tensor] = {}
     if obs.points2d is not None:
@@ -303,6 +326,8 @@ def fit_sequence(actor: ActorAtPoints, obs: Observations, settings: FitSettings,
     from models.fit_lm import solve_base
 
     n_it = settings.iterations if iterations is None else int(iterations)
+    if obs.points3d is None and not settings.adam_on_landmarks:
+        n_it = 0
     torch.manual_seed(settings.seed)
     fit = SequenceFit(head_R0.shape[0], actor.n_expressions, settings, head_R0, head_t0)
     if warm_start is not None:

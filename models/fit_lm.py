@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import torch
 from calib.projection import project_points
-from models.fit import (ActorAtPoints, FramePose, Observations, SequenceFit, compose_poses, observation_weights,
-                        robust_2d)
+from models.fit import (ActorAtPoints, FramePose, Observations, SequenceFit, compose_poses, monocular_priors,
+                        observation_weights, robust_2d)
 
 __all__ = ["LMResult", "solve_base", "so3_exp", "projection_jacobian"]
 
@@ -57,7 +57,7 @@ class _Problem:
     def __init__(self, fit: SequenceFit, actor: ActorAtPoints, obs: Observations):
         f64 = torch.float64
         cast = lambda x: None if x is None else x.detach().to(f64)
-        self.s = fit.settings
+        self.s = monocular_priors(fit.settings, obs)
         self.unit = self.s.length_unit_mm
         self.s0, self.k = cast(actor.neutral), cast(actor.skin_weight)[:, None]           # (P, 3), (P, 1)
         self.pivot, self.E_basis = cast(actor.jaw_pivot), cast(actor.expressions)         # (3,), (P, E, 3)
