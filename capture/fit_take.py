@@ -9,8 +9,9 @@ neurally reparameterised sequence fit (:mod:`models.fit`):
   correction on top of it.
 * **Windows**: ``[0, W), [W-O, 2W-O), ...`` (``W = window``, ``O = overlap``; the last one may be
   shorter). Each window after the first is warm-started from the previous one: ``F_T`` and ``F_W``
-  are copied, the overlap frames' codes are the previous window's codes of the same frames, the new
-  frames' codes start at the previous window's last code. The first window runs
+  are copied, the overlap frames' codes and base (head and jaw pose, coefficient offsets) are the
+  previous window's of the same frames, the new frames' codes and jaw/coefficient base start at the
+  previous window's last frame's, their head base at their initial pose. The first window runs
   ``settings.iterations``, later ones ``settings.warm_iterations`` (both may stop early, see
   :class:`~models.fit.FitSettings`).
 * **Seams**: every per-frame output of an overlap frame is the blend of the two windows' solutions

@@ -17,6 +17,13 @@ Units: lengths in the losses are divided by ``length_unit_mm`` (10 mm), as in ac
 these units (a perfect model plateaus near 0.09 mm in 3D, DESIGN.md measured notes), so the
 default preset uses 0.0075; the ``paper`` preset keeps 0.75.
 
+The networks correct a per-frame *base* (head and jaw pose, one offset per expression coefficient;
+:class:`SequenceFit`). The paper's fit keeps the base at the initial head pose with the jaw at rest;
+the default preset solves it by Levenberg-Marquardt (:mod:`models.fit_lm`) with the networks held
+fixed, which converges in a few steps where Adam needs hundreds, and on 2D landmark fits that solve
+is the whole fit (``adam_on_landmarks``); 3D fits then run Adam on the networks for the spatially
+varying detail and polish the base again.
+
 The fitter owns every per-frame parameter (:class:`SequenceFit`); the actor model stays frozen.
 """
 
