@@ -314,7 +314,8 @@ def _window_outputs(state: dict, settings: FitSettings, fit_actor: ActorAtPoints
     verts = np.empty((J, V, 3), np.float32)
     for j in range(J):  # one frame at a time: F_W at every vertex is the big evaluation
         sl = slice(j, j + 1)
-        w = fit.coefficients(out_actor, frames=sl)
+        # F_W at its zero start (2D default): the same coefficients at every vertex
+        w = fit.coeff0[sl, None, :] if fit.net_is_zero() else fit.coefficients(out_actor, frames=sl)
         verts[j] = pose_face(out_actor, pose.head_R[sl], pose.head_t[sl], pose.jaw_R[sl], pose.jaw_t[sl],
                              w)[0].cpu().numpy()
     out["vertices"] = verts

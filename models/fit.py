@@ -139,15 +139,20 @@ def pose_face(actor: ActorAtPoints, head_R: torch.Tensor, head_t: torch.Tensor, 
               jaw_t: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
     """``s* = T_g(LBS(s0, T_b, k) + sum_i w_i E_i)`` for J frames.
 
-    Args: head_R, jaw_R ``(J, 3, 3)``; head_t, jaw_t ``(J, 3)`` mm; coeffs ``(J, P, E)``.
+    Args: head_R, jaw_R ``(J, 3, 3)``; head_t, jaw_t ``(J, 3)`` mm; coeffs ``(J, P, E)``, or
+        ``(J, 1, E)`` for coefficients that are the same at every point (one matrix product).
     Returns: ``(J, P, 3)`` points in the camera frame (mm) when T_g maps head to camera.
     """
-    check_shapes({"coeffs": (coeffs, "J,P,E"), "expressions": (actor.expressions, "P,E,3")})
-    J = coeffs.shape[0]
+    J, P, E = coeffs.shape[0], actor.expressions.shape[0], actor.expressions.shape[1]
+    if coeffs.shape[1] == 1 and P != 1:
+        check_shapes({"coeffs": (coeffs, "J,1,E"), "expressions": (actor.expressions, "P,E,3")})
+        disp = (coeffs[:, 0] @ actor.expressions.permute(1, 0, 2).reshape(E, P * 3)).reshape(J, P, 3)
+    else:
+        check_shapes({"coeffs": (coeffs, "J,P,E"), "expressions": (actor.expressions, "P,E,3")})
+        disp = torch.einsum("jpe,pec->jpc", coeffs, actor.expressions)
     skinned = lbs_jaw(actor.neutral.expand(J, -1, -1), actor.skin_weight.expand(J, -1), jaw_R, jaw_t,
                       actor.jaw_pivot)
-    local = skinned + torch.einsum("jpe,pec->jpc", coeffs, actor.expressions)
-    return apply_rigid(local, head_R, head_t)
+    return apply_rigid(skinned + disp, head_R, head_t)
 
 
 class GeluMLP(nn.Module):
@@ -217,14 +222,18 @@ class SequenceFit(nn.Module):
         sl = slice(None) if frames is None else frames
         return self.net_coefficients(actor, points, frames) + self.coeff0[sl, None, :]
 
+    def net_is_zero(self) -> bool:
+        """True while F_W's last layer is exactly zero (its start): ``w_j(c)`` is then ``coeff0`` everywhere."""
+        last = self.F_W.net[-1]
+        return not (bool(last.weight.any()) or bool(last.bias.any()))
+
     def net_coefficients(self, actor: ActorAtPoints, points: torch.Tensor | None = None,
                          frames: slice | None = None) -> torch.Tensor:
         """F_W's part of ``w_j(c)`` ``(J, P, E)`` (without the base offset ``coeff0``)."""
         c = actor.points if points is None else points
         codes = self.codes if frames is None else self.codes[frames]
-        last = self.F_W.net[-1]
-        if not torch.is_grad_enabled() and not (last.weight.any() or last.bias.any()):
-            return c.new_zeros(codes.shape[0], c.shape[0], last.out_features)  # F_W still at its zero start
+        if not torch.is_grad_enabled() and self.net_is_zero():
+            return c.new_zeros(codes.shape[0], c.shape[0], self.F_W.net[-1].out_features)
         x = (c - actor.center) / actor.scale
         # F_W's first layer on [z_j, c] split into a per-frame and a per-point part (the same
         # function as concatenating the inputs, without building the (J, P, f + 3) input).

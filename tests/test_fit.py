@@ -275,3 +275,12 @@ def test_so3_exp_matches_scipy():
 
     v = torch.tensor([[0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [1e-8, 2e-8, 0.0], [2.0, 0.5, -1.0]], dtype=torch.float64)
     torch.testing.assert_close(so3_exp(v), torch.tensor(Rotation.from_rotvec(v.numpy()).as_matrix()))
+
+
+def test_pose_face_with_coefficients_constant_over_points():
+    actor = toy_actor(P=40, E=4)
+    head_R, head_t, _ = truth(actor, J=3)
+    w = torch.randn(3, 1, 4, dtype=torch.float64)
+    jaw_R, jaw_t = head_R.transpose(1, 2), torch.ones(3, 3, dtype=torch.float64)
+    torch.testing.assert_close(pose_face(actor, head_R, head_t, jaw_R, jaw_t, w),
+                               pose_face(actor, head_R, head_t, jaw_R, jaw_t, w.expand(3, 40, 4).contiguous()))
