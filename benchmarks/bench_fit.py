@@ -97,7 +97,7 @@ def main() -> None:
     ap.add_argument("--window", type=int, default=30)
     ap.add_argument("--overlap", type=int, default=6)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--paper-frames", type=int, default=8, help="window length of the paper-preset run")
+    ap.add_argument("--paper-frames", type=int, default=8, help="window length of the paper-preset run (0: skip it)")
     ap.add_argument("--paper-iterations", type=int, default=10_000)
     ap.add_argument("--noise-px", type=float, default=0.5)
     ap.add_argument("--no-previous", action="store_true", help="skip the previous default's A/B row")
@@ -140,6 +140,8 @@ def main() -> None:
     print("  error mean {mean_mm:.3f} mm, p95 {p95_mm:.3f} mm, reprojection RMS {rms_px:.3f} px, "
           "jitter {jitter_mm:.3f} mm".format(**m))
     print(f"  load average {os.getloadavg()[0]:.1f}")
+    print("  resolved settings:", json.dumps(resolved_settings_dict(default, args.window, args.overlap,
+                                                                  threads=args.threads)))
     if not args.no_previous:
         pfits, ptm0 = run(actor, inputs, PREVIOUS_DEFAULT, args.window, args.overlap, args.threads)
         m0 = metrics(pfits, truth)
@@ -151,6 +153,8 @@ def main() -> None:
               f"end to end ({ptm0['solve_s'] / max(tm['solve_s'], 1e-9):.1f}x in the solve)")
 
     J = args.paper_frames
+    if J <= 0:  # --paper-frames 0: no paper-preset row
+        return
     paper = replace(FIT_PRESETS["paper"], iterations=args.paper_iterations, warm_iterations=None)
     scale = 10_000 / args.paper_iterations
     pf, ptm = run(actor, inputs, paper, J, 0, args.threads, frames=slice(0, J))
@@ -166,8 +170,6 @@ def main() -> None:
     paper_ms = 1000 * (ptm["total_s"] + (scale - 1) * ptm["solve_s"]) / J
     print(f"  load average {os.getloadavg()[0]:.1f}; default is {paper_ms / (1000 * tm['total_s'] / len(fits)):.0f}x "
           f"faster per frame than the paper preset (end to end)")
-    print("\nresolved settings:", json.dumps(resolved_settings_dict(default, args.window, args.overlap,
-                                                                  threads=args.threads)))
 
 
 if __name__ == "__main__":
