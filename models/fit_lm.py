@@ -9,13 +9,13 @@ and already evaluated at the fit points, so a Gauss-Newton step costs a few ``po
 
 Each iteration linearises at the current base: the update ``delta (J, n)`` is ``[head rotation
 vector (rad), head translation (length_unit_mm), jaw rotation vector, jaw translation, coefficient
-offsets]``; rotations are updated on the left (``R0 <- exp([a]x) R0``). Per-frame residuals get
-their ``(J, M, n)`` Jacobian blocks by forward-mode differentiation along ``n`` tangents that move
-every frame at once (the frames' residuals are independent); the few temporal residuals get a full
-forward-mode Jacobian. The normal equations (``J n`` unknowns, block diagonal plus the temporal
-band) are solved densely in float64 with Marquardt's scaled damping; a step is kept only if the
-exact energy (robust 2D loss included) goes down. The pseudo-Huber 2D loss enters the linearisation
-through iteratively reweighted least squares (weights ``rho'(r^2)`` at the current point).
+offsets]``; rotations are updated on the left (``R0 <- exp([a]x) R0``). The Jacobians are analytic:
+``d x / d delta`` per point (:meth:`_Problem._jacobian`) chained with the projection's ``d uv / d x``
+(:func:`projection_jacobian`, OpenCV's distortion model); the temporal terms add banded blocks
+(:func:`_add_stencil`). The normal equations (``J n`` unknowns) are solved in float64 by Cholesky with
+Marquardt's scaled damping; a step is kept only if the exact energy (robust 2D loss included) goes
+down. The pseudo-Huber 2D loss enters the linearisation through iteratively reweighted least squares
+(weights ``rho'(r^2)`` at the current point), whose ``J^T r`` is the exact gradient.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass
 
 import torch
+
 from calib.projection import project_points
 from models.fit import (ActorAtPoints, FramePose, Observations, SequenceFit, compose_poses, monocular_priors,
                         observation_weights, robust_2d)
