@@ -284,3 +284,15 @@ def test_pose_face_with_coefficients_constant_over_points():
     jaw_R, jaw_t = head_R.transpose(1, 2), torch.ones(3, 3, dtype=torch.float64)
     torch.testing.assert_close(pose_face(actor, head_R, head_t, jaw_R, jaw_t, w),
                                pose_face(actor, head_R, head_t, jaw_R, jaw_t, w.expand(3, 40, 4).contiguous()))
+
+
+def test_paper_preset_stays_the_papers():
+    """The paper preset (the reference) has none of the default's additions: no LM base, no extra priors."""
+    from models.fit import FIT_PRESETS
+
+    p = FIT_PRESETS["paper"]
+    assert (p.iterations, p.lr, p.lr_final_fraction, p.coeff_weight, p.temporal_weight, p.robust_px) == \
+        (10_000, 1e-3, 1.0, 0.75, 0.05, 0.0)
+    assert (p.lm_iterations, p.lm_polish_iterations, p.pose_accel_weight, p.coeff_temporal_weight,
+            p.jaw_prior_weight, p.early_stop_tol) == (0, 0, 0.0, 0.0, 0.0, 0.0)
+    assert p.adam_on_landmarks and p.warm_iterations is None
