@@ -6,6 +6,10 @@ landmarks plus 0.5 px Gaussian noise. Printed per preset: seconds per frame of e
 (RMS over vertices and frames of the high-passed trajectory minus the truth's high-passed
 trajectory, mm; high pass = signal minus its Gaussian smoothing with sigma 2 frames).
 
+Rows: the default preset; the previous default (Adam only: 500 + 150 iterations with early stop,
+no Levenberg-Marquardt base; ``--no-previous`` skips it), run back to back for an A/B speed-up under
+the same load; the paper preset. The load average is printed with the figures.
+
 The paper preset (1e4 iterations per window, lr 1e-3, weights 0.75 / 0.05, squared loss) runs on
 one short window only; its time per frame is measured there (and, with ``--paper-iterations`` below
 1e4, extrapolated linearly to 1e4 iterations and labelled so). Its errors are compared with the
@@ -21,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import tempfile
 import time
 from dataclasses import replace
@@ -34,7 +39,10 @@ from calib.camera_io import read_camera
 from capture.actor_package import is_actor, load_actor
 from capture.cli import main as capture_main
 from capture.fit_take import fit_take, resolved_settings_dict
-from models.fit import FIT_PRESETS
+from models.fit import FIT_PRESETS, FitSettings
+
+# The default preset before the Levenberg-Marquardt base (for the A/B row).
+PREVIOUS_DEFAULT = FitSettings(hidden=64, temporal_weight=0.5, early_stop_tol=2e-3)
 
 
 def ensure_actor(path: str | None) -> str:
@@ -76,7 +84,8 @@ def stage_line(tm: dict, n: int, scale: float = 1.0) -> str:
     ms = lambda k: 1000 * tm.get(k, 0.0) / n
     return (f"query {ms('query_s'):.1f} | pnp {ms('pnp_s'):.1f} | solve {scale * ms('solve_s'):.1f} | "
             f"vertices {ms('outputs_s'):.1f} | total {ms('total_s') + (scale - 1) * ms('solve_s'):.1f} ms/frame; "
-            f"{tm.get('iterations', 0)} iterations in {tm.get('windows_solved', 0)} windows")
+            f"{tm.get('iterations', 0)} Adam + {tm.get('lm_iterations', 0)} LM iterations in "
+            f"{tm.get('windows_solved', 0)} windows")
 
 
 def main() -> None:
@@ -88,9 +97,10 @@ def main() -> None:
     ap.add_argument("--window", type=int, default=30)
     ap.add_argument("--overlap", type=int, default=6)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--paper-frames", type=int, default=8, help="window length of the paper-preset run")
+    ap.add_argument("--paper-frames", type=int, default=8, help="window length of the paper-preset run (0: skip it)")
     ap.add_argument("--paper-iterations", type=int, default=10_000)
     ap.add_argument("--noise-px", type=float, default=0.5)
+    ap.add_argument("--no-previous", action="store_true", help="skip the previous default's A/B row")
     ap.add_argument("--quick", action="store_true", help="30 frames, paper preset 1,000 iterations (extrapolated)")
     args = ap.parse_args()
     if args.quick:
@@ -129,8 +139,22 @@ def main() -> None:
     print("  " + stage_line(tm, len(fits)))
     print("  error mean {mean_mm:.3f} mm, p95 {p95_mm:.3f} mm, reprojection RMS {rms_px:.3f} px, "
           "jitter {jitter_mm:.3f} mm".format(**m))
+    print(f"  load average {os.getloadavg()[0]:.1f}")
+    print("  resolved settings:", json.dumps(resolved_settings_dict(default, args.window, args.overlap,
+                                                                  threads=args.threads)))
+    if not args.no_previous:
+        pfits, ptm0 = run(actor, inputs, PREVIOUS_DEFAULT, args.window, args.overlap, args.threads)
+        m0 = metrics(pfits, truth)
+        print(f"\n[previous default] (Adam only) same take, run right after")
+        print("  " + stage_line(ptm0, len(pfits)))
+        print("  error mean {mean_mm:.3f} mm, p95 {p95_mm:.3f} mm, reprojection RMS {rms_px:.3f} px, "
+              "jitter {jitter_mm:.3f} mm".format(**m0))
+        print(f"  load average {os.getloadavg()[0]:.1f}; default is {ptm0['total_s'] / tm['total_s']:.1f}x faster "
+              f"end to end ({ptm0['solve_s'] / max(tm['solve_s'], 1e-9):.1f}x in the solve)")
 
     J = args.paper_frames
+    if J <= 0:  # --paper-frames 0: no paper-preset row
+        return
     paper = replace(FIT_PRESETS["paper"], iterations=args.paper_iterations, warm_iterations=None)
     scale = 10_000 / args.paper_iterations
     pf, ptm = run(actor, inputs, paper, J, 0, args.threads, frames=slice(0, J))
@@ -143,8 +167,9 @@ def main() -> None:
           + (" (at the measured iterations)" if scale != 1 else ""))
     print(f"  default preset on the same {J} frames: mean {dm['mean_mm']:.3f} mm, p95 {dm['p95_mm']:.3f} mm, "
           f"RMS {dm['rms_px']:.3f} px")
-    print("\nresolved settings:", json.dumps(resolved_settings_dict(default, args.window, args.overlap,
-                                                                  threads=args.threads)))
+    paper_ms = 1000 * (ptm["total_s"] + (scale - 1) * ptm["solve_s"]) / J
+    print(f"  load average {os.getloadavg()[0]:.1f}; default is {paper_ms / (1000 * tm['total_s'] / len(fits)):.0f}x "
+          f"faster per frame than the paper preset (end to end)")
 
 
 if __name__ == "__main__":

@@ -9,8 +9,9 @@ neurally reparameterised sequence fit (:mod:`models.fit`):
   correction on top of it.
 * **Windows**: ``[0, W), [W-O, 2W-O), ...`` (``W = window``, ``O = overlap``; the last one may be
   shorter). Each window after the first is warm-started from the previous one: ``F_T`` and ``F_W``
-  are copied, the overlap frames' codes are the previous window's codes of the same frames, the new
-  frames' codes start at the previous window's last code. The first window runs
+  are copied, the overlap frames' codes and base (head and jaw pose, coefficient offsets) are the
+  previous window's of the same frames, the new frames' codes and jaw/coefficient base start at the
+  previous window's last frame's, their head base at their initial pose. The first window runs
   ``settings.iterations``, later ones ``settings.warm_iterations`` (both may stop early, see
   :class:`~models.fit.FitSettings`).
 * **Seams**: every per-frame output of an overlap frame is the blend of the two windows' solutions
@@ -54,7 +55,7 @@ from models.fit import (FIT_PRESETS, ActorAtPoints, FitSettings, Observations, S
 __all__ = ["FrameFit", "fit_take", "fit_meshes", "resolve_settings", "resolved_settings_dict", "window_plan",
            "farthest_point_sample"]
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: SequenceFit has a jaw and coefficient base
 
 
 @dataclass
@@ -242,16 +243,28 @@ def _num_threads(n: int | None):
 
 def _warm_state(prev: dict, prev_start: int, prev_end: int, start: int, n_frames: int,
                 head_R0: torch.Tensor, head_t0: torch.Tensor) -> dict:
-    """The previous window's state moved to ``[start, start + n_frames)`` (see the module docstring)."""
+    """The previous window's state moved to ``[start, start + n_frames)`` (see the module docstring).
+
+    Per-frame tensors (codes and the base: jaw pose, coefficient offsets) of the overlap frames are
+    the previous window's of the same frames, new frames take the previous window's last frame's;
+    the head base is the new window's initial pose except on the overlap frames, which keep the
+    previous window's (the same initial pose unless a Levenberg-Marquardt solve refined it).
+    """
     state = dict(prev)
-    codes = prev["codes"]
-    new = codes[-1:].expand(n_frames, -1).clone()
     n_ov = max(0, min(prev_end - start, n_frames))
-    if n_ov:
-        new[:n_ov] = codes[start - prev_start:start - prev_start + n_ov]
-    state["codes"] = new
-    state["head_R0"] = head_R0.clone()
-    state["head_t0"] = head_t0.clone()
+    off = start - prev_start
+
+    def moved(x: torch.Tensor, fill: torch.Tensor | None = None) -> torch.Tensor:
+        new = x[-1:].expand(n_frames, *x.shape[1:]).clone() if fill is None else fill.clone()
+        if n_ov:
+            new[:n_ov] = x[off:off + n_ov]
+        return new
+
+    for k in ("codes", "jaw_R0", "jaw_t0", "coeff0"):
+        if k in prev:
+            state[k] = moved(prev[k])
+    state["head_R0"] = moved(prev["head_R0"], head_R0)
+    state["head_t0"] = moved(prev["head_t0"], head_t0)
     return state
 
 
@@ -301,7 +314,8 @@ def _window_outputs(state: dict, settings: FitSettings, fit_actor: ActorAtPoints
     verts = np.empty((J, V, 3), np.float32)
     for j in range(J):  # one frame at a time: F_W at every vertex is the big evaluation
         sl = slice(j, j + 1)
-        w = fit.coefficients(out_actor, frames=sl)
+        # F_W at its zero start (2D default): the same coefficients at every vertex
+        w = fit.coeff0[sl, None, :] if fit.net_is_zero() else fit.coefficients(out_actor, frames=sl)
         verts[j] = pose_face(out_actor, pose.head_R[sl], pose.head_t[sl], pose.jaw_R[sl], pose.jaw_t[sl],
                              w)[0].cpu().numpy()
     out["vertices"] = verts
@@ -333,7 +347,7 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
                  threads: int | None, base_key: str, total: int | None, K, dist,
                  timings: dict | None = None) -> Iterator[FrameFit]:
     tm = timings if timings is not None else {}
-    for k in ("solve_s", "outputs_s", "iterations", "windows_solved", "windows_cached"):
+    for k in ("solve_s", "outputs_s", "iterations", "lm_iterations", "windows_solved", "windows_cached"):
         tm.setdefault(k, 0)
     if cache_dir is not None:
         cache_dir = Path(cache_dir)
@@ -358,6 +372,7 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
                 state = {k: v.detach().clone() for k, v in res.fit.state_dict().items()}
                 tm["solve_s"] += time.perf_counter() - t0
                 tm["iterations"] += len(res.losses)
+                tm["lm_iterations"] += res.lm_iterations
                 tm["windows_solved"] += 1
                 t0 = time.perf_counter()
                 raw = _window_outputs(state, settings, fit_actor, out_actor, K, dist)

@@ -164,3 +164,26 @@ def test_bad_inputs(take):
         fit_take(take["actor"], take["points"], take["weights"], None, take["template_points"], take["camera"], "fast")
     d = resolved_settings_dict("paper", 30, 6)
     assert d["preset"] == "paper" and d["fit"]["iterations"] == 10_000 and d["window"] == 30
+
+
+def test_warm_state_carries_the_base_of_the_overlap_frames():
+    """A warm start keeps the solved base (head, jaw, coefficient offsets) of the overlap frames."""
+    import torch
+
+    from capture.fit_take import _warm_state
+
+    J, E, f = 6, 3, 4
+    prev = {"codes": torch.arange(J * f, dtype=torch.float32).reshape(J, f),
+            "head_R0": torch.eye(3).expand(J, 3, 3) * torch.arange(1, J + 1)[:, None, None],
+            "head_t0": torch.arange(J * 3, dtype=torch.float32).reshape(J, 3),
+            "jaw_R0": torch.eye(3).expand(J, 3, 3) * -torch.arange(1, J + 1)[:, None, None],
+            "jaw_t0": -torch.arange(J * 3, dtype=torch.float32).reshape(J, 3),
+            "coeff0": torch.arange(J * E, dtype=torch.float32).reshape(J, E)}
+    R_new, t_new = torch.full((5, 3, 3), 7.0), torch.full((5, 3), 9.0)
+    st = _warm_state(prev, 10, 16, 14, 5, R_new, t_new)  # frames 14, 15 overlap; 16-18 are new
+    for k in ("codes", "jaw_R0", "jaw_t0", "coeff0"):
+        torch.testing.assert_close(st[k][:2], prev[k][4:6], msg=k)
+        torch.testing.assert_close(st[k][2:], prev[k][5:6].expand_as(st[k][2:]), msg=k)
+    torch.testing.assert_close(st["head_R0"][:2], prev["head_R0"][4:6])
+    torch.testing.assert_close(st["head_t0"][2:], t_new[2:])
+    torch.testing.assert_close(st["head_R0"][2:], R_new[2:])

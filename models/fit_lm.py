@@ -1,0 +1,341 @@
+"""Levenberg-Marquardt on the per-frame base of a sequence fit (the default preset's fast solver).
+
+A :class:`~models.fit.SequenceFit` poses frame j as the base ``(head_R0, head_t0, jaw_R0, jaw_t0,
+coeff0)`` composed with its networks' corrections. With the networks held fixed, the fitting energy
+(:func:`models.fit.energy_terms`) is a small nonlinear least-squares problem in the base: per frame
+a head rotation and translation, a jaw rotation and translation and one offset per expression
+(``n = 12 + E`` unknowns), coupled between frames only by the temporal terms. The actor is frozen
+and already evaluated at the fit points, so a Gauss-Newton step costs a few ``pose_face`` calls.
+
+Each iteration linearises at the current base: the update ``delta (J, n)`` is ``[head rotation
+vector (rad), head translation (length_unit_mm), jaw rotation vector, jaw translation, coefficient
+offsets]``; rotations are updated on the left (``R0 <- exp([a]x) R0``). The Jacobians are analytic:
+``d x / d delta`` per point (:meth:`_Problem._jacobian`) chained with the projection's ``d uv / d x``
+(:func:`projection_jacobian`, OpenCV's distortion model); the temporal terms add banded blocks
+(:func:`_add_stencil`). The normal equations (``J n`` unknowns) are solved in float64 by Cholesky with
+Marquardt's scaled damping; a step is kept only if the exact energy (robust 2D loss included) goes
+down. The pseudo-Huber 2D loss enters the linearisation through iteratively reweighted least squares
+(weights ``rho'(r^2)`` at the current point), whose ``J^T r`` is the exact gradient.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from calib.projection import project_points
+from models.fit import (ActorAtPoints, FramePose, Observations, SequenceFit, compose_poses, monocular_priors,
+                        observation_weights, robust_2d)
+
+__all__ = ["LMResult", "solve_base", "so3_exp", "projection_jacobian"]
+
+
+def so3_exp(v: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices ``(*, 3, 3)`` of rotation vectors ``v (*, 3)`` (radians): Rodrigues' formula
+    ``I + A [v]x + B [v]x^2`` with its Taylor series near 0 (differentiable everywhere)."""
+    t2 = (v * v).sum(-1)
+    small = t2 < 1e-6
+    safe = torch.where(small, torch.ones_like(t2), t2)
+    t = torch.sqrt(safe)
+    A = torch.where(small, 1 - t2 / 6 + t2 * t2 / 120, torch.sin(t) / t)
+    B = torch.where(small, 0.5 - t2 / 24 + t2 * t2 / 720, (1 - torch.cos(t)) / safe)
+    S = _skew(v)
+    eye = torch.eye(3, dtype=v.dtype, device=v.device)
+    return eye + A[..., None, None] * S + B[..., None, None] * (S @ S)
+
+
+@dataclass
+class LMResult:
+    energies: list[float]   # energy at the start and after every accepted step
+    iterations: int         # linearisations (accepted or not)
+
+
+class _Problem:
+    """The base problem of one window, in float64, linearised at the current base."""
+
+    def __init__(self, fit: SequenceFit, actor: ActorAtPoints, obs: Observations):
+        f64 = torch.float64
+        cast = lambda x: None if x is None else x.detach().to(f64)
+        self.s = monocular_priors(fit.settings, obs)
+        self.unit = self.s.length_unit_mm
+        self.s0, self.k = cast(actor.neutral), cast(actor.skin_weight)[:, None]           # (P, 3), (P, 1)
+        self.pivot, self.E_basis = cast(actor.jaw_pivot), cast(actor.expressions)         # (3,), (P, E, 3)
+        self.p2d = None if obs.points2d is None else torch.nan_to_num(cast(obs.points2d))
+        self.w2d = None if obs.points2d is None else observation_weights(obs, f64).to(f64)
+        self.K, self.dist, self.p3d = cast(obs.K), cast(obs.dist), cast(obs.points3d)
+        with torch.no_grad():
+            net = fit.net_poses()
+            self.net = FramePose(*(cast(x) for x in (net.head_R, net.head_t, net.jaw_R, net.jaw_t)))
+            Fw = fit.net_coefficients(actor).to(f64)                                   # (J, P, E) fixed
+        self.Fw_mean = Fw.mean(1)                                                      # (J, E)
+        self.Fw_sq = float(Fw.square().sum())
+        self.Fw_sq_diff = float((Fw[1:] - Fw[:-1]).square().sum())
+        self.Fw_diff_mean = (Fw[1:] - Fw[:-1]).mean(1)                                # (J-1, E)
+        self.A = torch.einsum("jpe,pec->jpc", Fw, self.E_basis)                       # F_W's displacement
+        self.P = Fw.shape[1]
+        self.base = [cast(fit.head_R0), cast(fit.head_t0), cast(fit.jaw_R0), cast(fit.jaw_t0), cast(fit.coeff0)]
+        self.J, self.E = self.base[4].shape
+        self.n = 12 + self.E
+
+    def totals(self, d: torch.Tensor | None = None) -> tuple[FramePose, torch.Tensor]:
+        """Poses and coefficient offsets ``(J, E)`` at base + ``d`` (``d (J, n)``; None: the base)."""
+        R0, t0, jR0, jt0, c0 = self.base
+        if d is not None:
+            u = self.unit
+            R0, t0, jR0, jt0, c0 = (so3_exp(d[:, 0:3]) @ R0, t0 + u * d[:, 3:6], so3_exp(d[:, 6:9]) @ jR0,
+                                    jt0 + u * d[:, 9:12], c0 + d[:, 12:])
+        return compose_poses(R0, t0, jR0, jt0, self.net), c0
+
+    def model(self, pose: FramePose, c: torch.Tensor):
+        """Camera-frame points ``x (J, P, 3)``, their rotated local part ``y = R_g L`` and ``R_b (s0 - pivot)``."""
+        q = self.s0 - self.pivot
+        jaw_q = torch.einsum("jab,pb->jpa", pose.jaw_R, q)
+        skinned = self.s0 + self.k * (jaw_q + self.pivot + pose.jaw_t[:, None] - self.s0)
+        local = skinned + self.A + (c @ self.E_basis.permute(1, 0, 2).reshape(self.E, -1)).reshape(self.J, self.P, 3)
+        y = torch.einsum("jab,jpb->jpa", pose.head_R, local)
+        return y + pose.head_t[:, None], y, jaw_q
+
+    def energy(self, d: torch.Tensor | None = None) -> float:
+        """The fitting energy (:func:`models.fit.energy_terms`, all terms) at base + ``d``."""
+        pose, c = self.totals(d)
+        x, _, _ = self.model(pose, c)
+        s, J, P, E, u = self.s, self.J, self.P, self.E, self.unit
+        e = 0.0
+        if self.p2d is not None:
+            r2 = (project_points(x, self.K, self.dist) - self.p2d).square().sum(-1)
+            e += float((self.w2d * robust_2d(r2, s.robust_px)).sum() / self.w2d.sum().clamp_min(1e-12))
+        if self.p3d is not None:
+            e += float(((x - self.p3d) / u).square().sum(-1).mean())
+        # sum over (j, p, e) of (F_W + c)^2 = sum F_W^2 + 2 P sum(m c) + P sum(c^2)
+        e += s.coeff_weight * (self.Fw_sq + P * float((2 * self.Fw_mean * c + c.square()).sum())) / (J * P * E)
+        if s.pose_accel_weight > 0 and J > 2:
+            acc = lambda x: float((x[2:] - 2 * x[1:-1] + x[:-2]).flatten(1).square().sum(-1).mean())
+            e += s.pose_accel_weight * (acc(pose.head_t / u) + acc(pose.head_R) + acc(pose.jaw_t / u) +
+                                        acc(pose.jaw_R))
+        if s.jaw_prior_weight > 0:
+            e += s.jaw_prior_weight * (float((pose.jaw_t / u).square().sum(-1).mean()) +
+                                       float((pose.jaw_R - torch.eye(3, dtype=c.dtype)).square().sum((-1, -2)).mean()))
+        if s.coeff_temporal_weight > 0 and J > 1:
+            dc = c[1:] - c[:-1]
+            e += s.coeff_temporal_weight * (self.Fw_sq_diff + P * float((2 * self.Fw_diff_mean * dc +
+                                                                         dc.square()).sum())) / ((J - 1) * P)
+        return e
+
+    def normal_equations(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``H = J^T J`` ``(J n, J n)`` and ``g = J^T r`` ``(J n,)`` of the (IRLS-weighted) residuals at the base.
+
+        The residuals are those whose squares sum to the energy up to a constant: per landmark
+        ``sqrt(w rho'(r^2) / sum w) (uv - p)``, per 3D point ``(x - p) / (unit sqrt(J P))``, per frame
+        and expression ``sqrt(lambda_w / (J E)) (mean_p F_W + c)``, and the temporal differences.
+        """
+        s, J, P, E, n, u = self.s, self.J, self.P, self.E, self.n, self.unit
+        pose, c = self.totals()
+        x, y, jaw_q = self.model(pose, c)
+        Hb = x.new_zeros(J, n, n)
+        gb = x.new_zeros(J, n)
+        if self.p2d is not None:
+            uv, Jp = projection_jacobian(x, self.K, self.dist)                        # (J, P, 2), (J, P, 2, 3)
+            r = uv - self.p2d
+            rp = s.robust_px
+            drho = torch.ones_like(r[..., 0]) if rp <= 0 else 1 / torch.sqrt(1 + r.square().sum(-1) / rp ** 2)
+            sw = torch.sqrt(self.w2d * drho / self.w2d.sum().clamp_min(1e-12))[..., None]  # (J, P, 1)
+            Jr = self._jacobian(sw[..., None] * Jp, y, jaw_q, pose.head_R)          # (J, P, 2, n)
+            Hb += _gram(Jr)
+            gb += torch.einsum("jpia,jpi->ja", Jr, sw * r)
+        if self.p3d is not None:
+            k3 = 1 / (u * math.sqrt(J * P))
+            Jr = self._jacobian(k3 * torch.eye(3, dtype=x.dtype).expand(J, P, 3, 3), y, jaw_q, pose.head_R)
+            Hb += _gram(Jr)
+            gb += torch.einsum("jpia,jpi->ja", Jr, k3 * (x - self.p3d))
+        kw = s.coeff_weight / (J * E)
+        Hb[:, 12:, 12:] += kw * torch.eye(E, dtype=x.dtype)
+        gb[:, 12:] += kw * (self.Fw_mean + c)
+        H = x.new_zeros(J, J, n, n)                     # H[j, k] is the (n, n) block of frames j, k
+        j = torch.arange(J)
+        H[j, j] = Hb
+        self._add_temporal(H, gb, pose, c)
+        return H.permute(0, 2, 1, 3).reshape(J * n, J * n), gb.reshape(-1)
+
+    def _jacobian(self, D: torch.Tensor, y: torch.Tensor, jaw_q: torch.Tensor, head_R: torch.Tensor) -> torch.Tensor:
+        """``D @ d x / d delta`` ``(J, P, m, n)`` for ``D (J, P, m, 3)`` (the residuals' derivative wrt ``x``).
+
+        ``d x / d delta`` is ``[-[y]x, unit I, -k R_g [R_b q]x, unit k R_g, R_g E_p^T]`` per point.
+        """
+        u, k = self.unit, self.k[..., None]
+        DR = torch.einsum("jpia,jab->jpib", D, head_R)                              # (J, P, m, 3)
+        J, P, m, _ = D.shape
+        # R_g E_p^T per point: one small GEMM per point (batched over points)
+        DE = (DR.transpose(0, 1).reshape(P, J * m, 3) @ self.E_basis.transpose(1, 2)).reshape(P, J, m, -1)
+        return torch.cat([-_mm(D, _skew(y)), u * D, -k * _mm(DR, _skew(jaw_q)), (u * k) * DR,
+                          DE.transpose(0, 1)], -1)
+
+    def _add_temporal(self, H: torch.Tensor, g: torch.Tensor, pose: FramePose, c: torch.Tensor) -> None:
+        """Add the temporal terms' ``J^T J`` to ``H (J, J, n, n)`` and ``J^T r`` to ``g (J, n)``, at the base."""
+        s, J, u, E, n = self.s, self.J, self.unit, self.E, self.n
+        eye3 = torch.eye(3, dtype=c.dtype)
+        if s.pose_accel_weight > 0 and J > 2:
+            k = math.sqrt(s.pose_accel_weight / (J - 2))
+            gens = _skew(eye3)                                                       # (3, 3, 3): [e_a]x
+            # per frame: each quantity's derivative wrt its own update (rows: the quantity, cols: delta)
+            for val, cols, G in (
+                    (pose.head_t / u, slice(3, 6), eye3.expand(J, 3, 3)),
+                    (pose.head_R, slice(0, 3), torch.einsum("aik,jkl->jila", gens, pose.head_R).reshape(J, 9, 3)),
+                    (pose.jaw_t / u, slice(9, 12), eye3.expand(J, 3, 3)),
+                    (pose.jaw_R, slice(6, 9), torch.einsum("aik,jkl->jila", gens, pose.jaw_R).reshape(J, 9, 3))):
+                _add_stencil(H, g, val.reshape(J, -1), G, cols, (1.0, -2.0, 1.0), k)
+        if s.jaw_prior_weight > 0:
+            k = math.sqrt(s.jaw_prior_weight / J)
+            _add_stencil(H, g, pose.jaw_t / u, eye3.expand(J, 3, 3), slice(9, 12), (1.0,), k)
+            _add_stencil(H, g, (pose.jaw_R - eye3).reshape(J, 9),
+                         torch.einsum("aik,jkl->jila", _skew(eye3), pose.jaw_R).reshape(J, 9, 3), slice(6, 9), (1.0,), k)
+        if s.coeff_temporal_weight > 0 and J > 1:
+            k = math.sqrt(s.coeff_temporal_weight / (J - 1))
+            _add_stencil(H, g, self.Fw_mean + c, torch.eye(E, dtype=c.dtype).expand(J, E, E), slice(12, n),
+                         (-1.0, 1.0), k)
+
+    def accept(self, d: torch.Tensor) -> None:
+        R0, t0, jR0, jt0, c0 = self.base
+        u = self.unit
+        self.base = [so3_exp(d[:, 0:3]) @ R0, t0 + u * d[:, 3:6], so3_exp(d[:, 6:9]) @ jR0, jt0 + u * d[:, 9:12],
+                     c0 + d[:, 12:]]
+
+
+def _gram(Jr: torch.Tensor) -> torch.Tensor:
+    """``sum_{p, i} Jr[j, p, i, a] Jr[j, p, i, b]`` ``(J, n, n)`` for ``Jr (J, P, m, n)``, accumulated in float32.
+
+    Only the Gauss-Newton matrix is rounded (it shapes the step, not the fixed point: the gradient and
+    the energy that accepts a step stay in float64)."""
+    X = Jr.reshape(Jr.shape[0], -1, Jr.shape[-1]).float()
+    return (X.transpose(1, 2) @ X).to(Jr.dtype)
+
+
+def _mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` for many tiny matrices (``(*, i, k) @ (*, k, j)``, broadcast), faster than batched GEMM."""
+    return (a[..., :, :, None] * b[..., None, :, :]).sum(-2)
+
+
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    """``[v]x (*, 3, 3)`` with ``[v]x a = v x a``."""
+    z = torch.zeros_like(v[..., 0])
+    return torch.stack([torch.stack([z, -v[..., 2], v[..., 1]], -1),
+                        torch.stack([v[..., 2], z, -v[..., 0]], -1),
+                        torch.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _add_stencil(H: torch.Tensor, g: torch.Tensor, v: torch.Tensor, G: torch.Tensor, cols: slice,
+                 stencil: tuple[float, ...], k: float) -> None:
+    """Add the Gauss-Newton terms of residuals ``r_j = k sum_i stencil[i] v_{j+i}`` (``v (J, q)``) whose
+    Jacobian wrt ``delta_{j+i}[cols]`` is ``k stencil[i] G_{j+i}`` (``G (J, q, c)``), to ``H (J, J, n, n)``
+    and ``g (J, n)``."""
+    S = len(stencil)
+    M = v.shape[0] - S + 1
+    m = torch.arange(M)
+    r = k * sum(a * v[i:i + M] for i, a in enumerate(stencil))                         # (M, q)
+    for i, a in enumerate(stencil):
+        Gi = k * a * G[i:i + M]                                                     # (M, q, c)
+        g[m + i, cols] += torch.einsum("mqa,mq->ma", Gi, r)
+        for i2, a2 in enumerate(stencil):
+            blk = torch.einsum("mqa,mqb->mab", Gi, k * a2 * G[i2:i2 + M])
+            H[m + i, m + i2, cols, cols] += blk
+
+
+def projection_jacobian(x: torch.Tensor, K: torch.Tensor, dist: torch.Tensor | None):
+    """Pixels ``(*, N, 2)`` of camera points ``x (*, N, 3)`` and their Jacobian ``d uv / d x (*, N, 2, 3)``.
+
+    Analytic for OpenCV's pinhole model with 0, 4, 5, 8 or 12 distortion coefficients (k1 k2 p1 p2
+    [k3 [k4 k5 k6 [s1 s2 s3 s4]]]); by reverse-mode autograd through :func:`project_points` otherwise.
+    """
+    D = 0 if dist is None else dist.shape[-1]
+    if D not in (0, 4, 5, 8, 12) or K.dim() != 2:
+        xg = x.detach().requires_grad_(True)
+        with torch.enable_grad():
+            uv = project_points(xg, K, dist)
+            gu, = torch.autograd.grad(uv[..., 0].sum(), xg, retain_graph=True)
+            gv, = torch.autograd.grad(uv[..., 1].sum(), xg)
+        return uv.detach(), torch.stack([gu, gv], -2)
+    c = [0.0] * 12
+    if D:
+        c[:D] = [float(v) for v in dist]
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = c
+    iz = 1 / x[..., 2]
+    a, b = x[..., 0] * iz, x[..., 1] * iz
+    r2 = a * a + b * b
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    rad = num / den
+    drad = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / den ** 2
+    xd = a * rad + 2 * p1 * a * b + p2 * (r2 + 2 * a * a) + r2 * (s1 + s2 * r2)
+    yd = b * rad + p1 * (r2 + 2 * b * b) + 2 * p2 * a * b + r2 * (s3 + s4 * r2)
+    tx, ty = s1 + 2 * s2 * r2, s3 + 2 * s4 * r2
+    xa = rad + 2 * a * a * drad + 2 * p1 * b + 6 * p2 * a + 2 * a * tx
+    xb = 2 * a * b * drad + 2 * p1 * a + 2 * p2 * b + 2 * b * tx
+    ya = 2 * a * b * drad + 2 * p1 * a + 2 * p2 * b + 2 * a * ty
+    yb = rad + 2 * b * b * drad + 6 * p1 * b + 2 * p2 * a + 2 * b * ty
+    fx, sk, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    uv = torch.stack([fx * xd + sk * yd + cx, fy * yd + cy], -1)
+    # d(xd, yd)/d(a, b) @ d(a, b)/d(x, y, z); d a/dx = 1/z, d a/dz = -a/z
+    dxd = torch.stack([xa * iz, xb * iz, -(xa * a + xb * b) * iz], -1)
+    dyd = torch.stack([ya * iz, yb * iz, -(ya * a + yb * b) * iz], -1)
+    return uv, torch.stack([fx * dxd + sk * dyd, fy * dyd], -2)
+
+
+def _solve_spd(H: torch.Tensor, damping: torch.Tensor, g: torch.Tensor) -> torch.Tensor | None:
+    """``(H + diag(damping))^-1 g`` by Cholesky; None when the matrix is not positive definite."""
+    L, info = torch.linalg.cholesky_ex(H + torch.diag(damping))
+    if int(info) != 0:
+        return None
+    return torch.cholesky_solve(g[:, None], L)[:, 0]
+
+
+@torch.no_grad()
+def _write_back(fit: SequenceFit, base: list[torch.Tensor]) -> None:
+    for name, x in zip(("head_R0", "head_t0", "jaw_R0", "jaw_t0", "coeff0"), base):
+        getattr(fit, name).copy_(x.to(getattr(fit, name).dtype))
+
+
+def solve_base(fit: SequenceFit, actor: ActorAtPoints, obs: Observations, iterations: int,
+               tol: float | None = None) -> LMResult:
+    """Minimise the fitting energy over ``fit``'s base buffers (networks fixed); updates ``fit`` in place.
+
+    Args:
+        fit: the window's state; its base buffers are overwritten with the solution.
+        actor: the frozen actor at the fit points; obs: the window's observations.
+        iterations: at most this many linearisations.
+        tol: stop when an accepted step lowers the energy by less than this fraction
+            (default ``fit.settings.lm_tol``).
+    """
+    tol = fit.settings.lm_tol if tol is None else tol
+    prob = _Problem(fit, actor, obs)
+    J, n = prob.J, prob.n
+    energy = prob.energy()
+    energies = [energy]
+    mu = 1e-3
+    it = 0
+    while it < iterations:
+        H, g = prob.normal_equations()
+        diag = H.diagonal().clamp_min(1e-12 * float(H.diagonal().max()) + 1e-30)
+        improved = False
+        while it < iterations:
+            it += 1
+            step = _solve_spd(H, mu * diag, g)
+            if step is None:  # not positive definite: damp more
+                mu *= 4
+                continue
+            step = -step.reshape(J, n)
+            trial = prob.energy(step)
+            if math.isfinite(trial) and trial < energy:
+                prob.accept(step)
+                mu = max(mu / 3, 1e-9)
+                improved = energy - trial >= tol * abs(energy)
+                energy = trial
+                energies.append(energy)
+                break
+            mu *= 4
+            if mu > 1e8:
+                break
+        if not improved:
+            break
+    _write_back(fit, prob.base)
+    return LMResult(energies=energies, iterations=it)
