@@ -2,7 +2,8 @@
 
 A and B are learned from blendshapes in correspondence (one topology, the same expressions). A fit of
 A gives per frame the head transform T_g, the jaw transform T_b and the coefficient field
-``w_j(c) = F_W(z_j, c)`` over A's template. B plays them as
+``w_j(c) = coeff0_j + F_W(z_j, c)`` (the frame's base coefficients plus
+F_W's field) over A's template. B plays them as
 
     s_B(c_i) = T_g( LBS(s0_B(c_i), T_b, k_B(c_i)) + sum_e w_j,e(c_i^A) E_B,e(c_i) )
 
