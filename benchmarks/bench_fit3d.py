@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+import sys  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repo's packages
 from benchmarks.gbs import fit_gbs_sequence
 from benchmarks.heldout import (DEFAULT_ICT, JAW_RANGES, NARROW_FACE_NV, load_ict_identity, make_performance,
                                sample_actor_split)

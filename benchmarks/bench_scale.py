@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repo's packages
 from benchmarks.takes import DEFAULT_ACTOR, REPO, load_take, peak_rss_mb, save_png, synth
 
 

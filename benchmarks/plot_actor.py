@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+import sys  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repo's packages
 from benchmarks.takes import DEFAULT_ACTOR, REPO, save_png
 
 
