@@ -14,7 +14,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 import trimesh
 from scipy.spatial.transform import Rotation
@@ -62,7 +61,6 @@ def _meshes(folder: Path) -> np.ndarray:
                      for p in sorted(folder.glob("frame_*.obj"))])
 
 
-@pytest.mark.skipif(not (B_DIR / "actor.json").is_file(), reason="fixture tests/data/ict_b_actor missing")
 def test_ict_retarget_plays_known_parameters_on_b(tmp_path):
     from capture.actor_package import read_metadata
 
