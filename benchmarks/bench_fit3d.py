@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> dict:
     import torch
 
     from capture.actor_package import load_actor
-    from capture.atomic import atomic_path
+    from capture.atomic import write_text
     from models.fit import FIT_PRESETS
 
     torch.set_num_threads(args.threads)
@@ -241,8 +241,7 @@ def main(argv: list[str] | None = None) -> dict:
     figs = save_figures(out, np.asarray(actor.template.faces), ident.neutral, err, perf.sequence)
     res["figures"] = [str(p) for p in figs]
     p = out / "fit3d.json"
-    with atomic_path(p) as tmp:
-        Path(tmp).write_text(json.dumps(res, indent=1), encoding="utf-8")
+    write_text(p, json.dumps(res, indent=1))
     print(f"\nfigures: {', '.join(str(p) for p in figs)}; numbers: {p}")
     return res
 

@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.child:
         print(json.dumps(child(json.loads(args.child))))
         return {}
-    from capture.atomic import atomic_path
+    from capture.atomic import write_text
 
     lengths = [int(v) for v in args.lengths.split(",")]
     counts = [int(v) for v in args.landmarks.split(",")]
@@ -175,12 +175,10 @@ def main(argv: list[str] | None = None) -> dict:
                   f"load {r['load_average']:.1f}", flush=True)
             res = {"rows": rows, "take_frames": take_frames, "size": size}
             p = out / ("scale_quick.json" if args.quick else "scale.json")
-            with atomic_path(p) as tmp_json:   # after every row: an interrupted run keeps what it measured
-                Path(tmp_json).write_text(json.dumps(res, indent=1), encoding="utf-8")
+            write_text(p, json.dumps(res, indent=1))   # after every row: an interrupted run keeps what it measured
     fig = plot(out, rows)
     res["figure"] = str(fig)
-    with atomic_path(p) as tmp_json:
-        Path(tmp_json).write_text(json.dumps(res, indent=1), encoding="utf-8")
+    write_text(p, json.dumps(res, indent=1))
     print(f"figure: {fig}; numbers: {p}")
     return res
 

@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
     import torch
 
     from capture.actor_package import load_actor
-    from capture.atomic import atomic_path
+    from capture.atomic import write_text
     from models.fit import FIT_PRESETS
 
     torch.set_num_threads(args.threads)
@@ -184,8 +184,7 @@ def main(argv: list[str] | None = None) -> dict:
                "takes": [{k: v for k, v in r.items() if not k.startswith("_")} for r in results],
                "figures": [str(p) for p in figs]}
     p = out / ("takes_quick.json" if args.quick else "takes.json")
-    with atomic_path(p) as tmp_json:
-        Path(tmp_json).write_text(json.dumps(summary, indent=1), encoding="utf-8")
+    write_text(p, json.dumps(summary, indent=1))
     print(f"\nfigures: {', '.join(map(str, figs))}; numbers: {p}")
     return summary
 
