@@ -7,9 +7,6 @@ from typing import Optional
 
 import typer
 
-from capture.run.inputs import RunConfig, parse_formats
-from capture.run.report import print_summary
-from capture.run.take import run_take
 
 
 def run_command(
@@ -38,6 +35,10 @@ def run_command(
     """Capture a take: detect landmarks, fit the actor, export meshes, USD, parameters and an overlay.
 
     Each stage skips work already done: rerunning is cheap and an interrupted run resumes."""
+    from capture.run.inputs import RunConfig, parse_formats
+    from capture.run.report import print_summary
+    from capture.run.take import run_take
+
     cfg = RunConfig(video=video, actor=actor, camera=camera, detector=detector, out=out, frames=frames,
                     formats=parse_formats(formats), preset=preset, seed=seed, iterations=iterations, threads=threads,
                     device=device, window=window,
