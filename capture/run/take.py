@@ -19,7 +19,7 @@ Output folder (``runs/<video stem>`` by default)::
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -134,32 +134,48 @@ def run_take(cfg: RunConfig) -> dict:
 
     log: list[dict] = []
     stage = "detect"
+    ctx = ExportContext(faces=np.asarray(inputs.actor.template.faces), fps=info.fps,
+                        image_size=(info.width, info.height), camera=cam, frame_count=0,
+                        options=ExportOptions(), source=f"capture run {Path(cfg.video).name}, "
+                                                        f"actor {inputs.actor.name}")
+
+    def export_key(track) -> dict:
+        return {"fit": fits_key(out, inputs, track), "formats": list(cfg.formats), "fps": info.fps,
+                "video": inputs.video_id, "options": ExportOptions().__dict__}
+
     with sigterm_as_interrupt():
         try:
-            detect_stage(inputs, out, log=log, progress=cfg.progress)
-            track = LandmarkTrack.load_npz(out / LANDMARKS)
-            if not track.face_found.any():
-                raise CaptureError(f"detector {det.name} found no face in any of the {len(track)} requested frames; "
-                                   f"check the video, --frames and the detector (its spec's crop.first_frame)")
-            stage = "fit"
-            fit_dir = fit_stage(inputs, track, out, log=log, progress=cfg.progress)
-            frames = fit_frames(fit_dir)
-            stage = "export"
-            ctx = ExportContext(faces=np.asarray(inputs.actor.template.faces), fps=info.fps,
-                                image_size=(info.width, info.height), camera=cam, frame_count=len(frames),
-                                options=ExportOptions(), source=f"capture run {Path(cfg.video).name}, "
-                                                                f"actor {inputs.actor.name}")
-            dets = {int(i): Detection(track.points[j], None if track.confidence is None else track.confidence[j],
-                                      bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
+            streamed = None if cfg.segments else _stream_unless_fitted(inputs, out, log)
+            if streamed is not None:   # detect, fit and export ran together (capture.run.stream)
+                stage = "the streamed detect, fit and export"
+                from capture.run.stream import stream_take
 
-            def images(frames):
-                with VideoReader(cfg.video) as reader:
-                    yield from reader.frames(frames)
+                res = stream_take(inputs, out, replace(ctx, frame_count=streamed), cfg.formats, export_key,
+                                  lambda r: Detection(r.points, r.confidence, bool(r.face_found)), cfg.progress)
+                log[:] = res.log
+                track, fit_dir = res.track, res.fit_dir
+                frames = fit_frames(fit_dir)
+            else:
+                if not log:
+                    detect_stage(inputs, out, log=log, progress=cfg.progress)
+                track = LandmarkTrack.load_npz(out / LANDMARKS)
+                if not track.face_found.any():
+                    raise CaptureError(f"detector {det.name} found no face in any of the {len(track)} requested "
+                                       f"frames; check the video, --frames and the detector (its spec's "
+                                       f"crop.first_frame)")
+                stage = "fit"
+                fit_dir = fit_stage(inputs, track, out, log=log, progress=cfg.progress)
+                frames = fit_frames(fit_dir)
+                stage = "export"
+                dets = {int(i): Detection(track.points[j], None if track.confidence is None else track.confidence[j],
+                                          bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
 
-            key = {"fit": fits_key(out, inputs, track), "formats": list(cfg.formats), "fps": info.fps,
-                   "video": inputs.video_id, "options": ExportOptions().__dict__}
-            export_stage(fit_dir, ctx, cfg.formats, key, out, images=images, detections=dets, log=log,
-                         progress=cfg.progress)
+                def images(frames):
+                    with VideoReader(cfg.video) as reader:
+                        yield from reader.frames(frames)
+
+                export_stage(fit_dir, replace(ctx, frame_count=len(frames)), cfg.formats, export_key(track), out,
+                             images=images, detections=dets, log=log, progress=cfg.progress)
         except KeyboardInterrupt:
             raise _interrupted(out, stage) from None
 
@@ -187,6 +203,31 @@ def run_take(cfg: RunConfig) -> dict:
     check_complete(requested, frames)
     write_run_json(out, inputs.video_id, label, settings, fingerprints, "done")
     return report
+
+
+def _stream_unless_fitted(inputs, out: Path, log: list[dict]) -> int | None:
+    """None when the take's detections are all cached and its fit is done (only the export may be left:
+    the stages run one by one, each skipping what is done; ``log`` gets the detect entry); otherwise the
+    number of requested frames, to be run as a stream (:mod:`capture.run.stream`)."""
+    from capture.detector import LandmarkTrack
+    from capture.run.stages import fit_dir_for, fit_is_done, fit_key
+    from capture.run.stream import plan_detection
+
+    det = inputs.detector
+    cfg = inputs.config
+    query = inputs.landmark_points if det.spec.kind == "query" else None
+    frames = None if cfg.frames is None else range(*inputs.frame_range)
+    plan = plan_detection(cfg.video, det, out, frames, det._check_query(query))
+    if plan.groups:
+        return len(plan.wanted)
+    entry: list[dict] = []
+    detect_stage(inputs, out, log=entry, progress=False)
+    track = LandmarkTrack.load_npz(out / LANDMARKS)
+    key = fit_key(inputs, track)
+    if not track.face_found.any() or fit_is_done(fit_dir_for(out, key), key):
+        log.extend(entry)
+        return None
+    return len(plan.wanted)
 
 
 def fits_key(out: Path, inputs, track) -> str:
