@@ -147,15 +147,25 @@ def _child(cmd: list[str], cores: set[int] | None, watch: Path | None = None) ->
     proc = subprocess.Popen(cmd, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=pre)
     seen = None
-    while proc.poll() is None:
+    import threading
+
+    pipes = {}
+    reader = threading.Thread(target=lambda: pipes.update(zip(("out", "err"), proc.communicate())), daemon=True)
+    reader.start()                                   # drains the pipes while we wait
+    while True:
         if watch is not None and seen is None and watch.exists():
             seen = time.perf_counter() - t0
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+        if pid:
+            break
         time.sleep(0.005)
     wall = time.perf_counter() - t0
-    out, err = proc.communicate()
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    reader.join()
+    out, err = pipes.get("out", ""), pipes.get("err", "")
     if proc.returncode:
         raise RuntimeError(f"{' '.join(cmd[:4])} failed ({proc.returncode}): {err.strip()[-2000:]}")
-    return {"wall_s": wall, "watch_s": seen, "stdout": out, "stderr": err}
+    return {"wall_s": wall, "watch_s": seen, "stdout": out, "stderr": err, "peak_rss_mb": usage.ru_maxrss / 1024}
 
 
 DETECT_ONLY = """
@@ -220,6 +230,7 @@ def _measure(args, work: Path) -> dict:
             res = _child(run_cmd(out), cores, watch=out / "run.json")
             rep = json.loads((out / "report.json").read_text())
             rows.setdefault(name, []).append({"wall_s": res["wall_s"], "frames": rep["frames"]["requested"],
+                                              "peak_rss_mb": res["peak_rss_mb"],
                                               "inner_s": rep["seconds_total"], "start_s": res["watch_s"],
                                               "stages": {st["stage"]: round(st["seconds"], 2) for st in rep["stages"]}})
             shutil.rmtree(out, ignore_errors=True)
@@ -251,6 +262,7 @@ def _measure(args, work: Path) -> dict:
         "run_over_detector_only": med("run 2 cores") / med("detector only"),
         "two_over_one_core": med("run 1 core") / med("run 2 cores"),
         "run_start_s": med("run 2 cores", "start_s"), "help_s": med("capture --help"),
+        "run_peak_rss_mb": max(x["peak_rss_mb"] for x in rows["run 2 cores"]),
     }
     if "live" in rows:
         summary.update(live_fps=med("live", "fps"), live_dropped=[x["dropped"] for x in rows["live"]],

@@ -116,3 +116,13 @@ def test_bench_scale_quick(tmp_path):
     res = main(["--quick", "--out", str(tmp_path)])
     assert [r["frames"] for r in res["rows"] if r["series"] == "length"] == [6, 12]
     assert all(r["peak_rss_mb"] > 0 for r in res["rows"]) and (tmp_path / "scale.png").is_file()
+
+
+@pytest.mark.slow
+def test_bench_pipeline_quick(tmp_path):
+    from benchmarks.bench_pipeline import main
+
+    res = main(["--quick", "--work", str(tmp_path), "--out", str(tmp_path)])
+    s = res["summary"]
+    assert s["frames"] == 24 and s["run_2_cores_fps"] > 0 and s["detector_only_fps"] > 0
+    assert s["live_max_lag"] <= 5 and s["run_peak_rss_mb"] > 0
