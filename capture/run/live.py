@@ -167,6 +167,7 @@ def run_live(cfg: LiveConfig, say: Callable[[str], None] | None = None) -> dict:
 
     window, overlap = cfg.windows()
     settings = resolve_fit_settings(cfg.preset, cfg.seed, cfg.iterations)
+    sink = JsonSink(cfg.json_to)
     cap, is_file, src_fps, label = open_source(cfg.source)
     try:
         ok, first = cap.read()
@@ -190,7 +191,6 @@ def run_live(cfg: LiveConfig, say: Callable[[str], None] | None = None) -> dict:
         stem = Path(str(cfg.source)).stem if is_file else str(cfg.source).replace("/", "_").replace(":", "_")
         out = Path(cfg.out) if cfg.out is not None else Path("runs") / f"live_{stem}"
         out.mkdir(parents=True, exist_ok=True)
-        sink = JsonSink(cfg.json_to)
         ctx = ExportContext(faces=np.asarray(actor.template.faces), fps=fps, image_size=(w, h),
                             camera=camera.camera, options=ExportOptions(overwrite=True),
                             source=f"capture live {label}, actor {actor.name}")
@@ -198,6 +198,7 @@ def run_live(cfg: LiveConfig, say: Callable[[str], None] | None = None) -> dict:
                          sink, ctx, say, label)
     finally:
         cap.release()
+        sink.close()
 
 
 def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, settings, window, overlap, out, sink, ctx,

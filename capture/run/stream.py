@@ -353,6 +353,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                     clocks["export"].busy += time.perf_counter() - t0
                     bar.advance(1)
                 pipe_line.check()
+                t_close = time.perf_counter()     # the writers finish (USD's last block, NPZ) as the block ends
             finally:
                 if reader is not None:
                     reader.close()
@@ -363,6 +364,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     except BaseException:
         pipe_line.close()
         raise
+    clocks["export"].busy += time.perf_counter() - t_close
     pipe_line.close()
     pipe_line.check()
     clocks["export"].finished = time.perf_counter() - pipe_line.t0
