@@ -276,6 +276,11 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                 if r.frame_index in wanted:
                     results.append(r)
                     landmarks.put(r)
+        if frames is not None and len(results) < n_frames:   # as detect_video: the header promised more
+            have = {int(r.frame_index) for r in results}
+            lost = next(i for i in plan.wanted if i not in have)
+            raise CaptureError(f"video {Path(cfg.video).name} ends before frame {lost} (its header says "
+                               f"{plan.info.frame_count} frames); request frames below {lost}")
         landmarks.put(_END)
 
     def fit():
