@@ -168,6 +168,33 @@ def _child(cmd: list[str], cores: set[int] | None, watch: Path | None = None) ->
     return {"wall_s": wall, "watch_s": seen, "stdout": out, "stderr": err, "peak_rss_mb": usage.ru_maxrss / 1024}
 
 
+def upscaled(video: Path, out: Path, size: tuple[int, int], repeat: int) -> Path:
+    """``video`` resized to ``size`` and played ``repeat`` times in a row (H.264 via PyAV): a longer 1080p take."""
+    if out.is_file():
+        return out
+    import av
+    import cv2
+
+    from capture.io.video import VideoReader
+
+    with VideoReader(video) as r:
+        frames = [cv2.resize(f, size, interpolation=cv2.INTER_LINEAR) for _, f in r.frames()]
+        fps = r.info.fps
+    tmp = out.with_suffix(".part.mp4")
+    with av.open(str(tmp), "w") as c:
+        st = c.add_stream("libx264", rate=int(round(fps)))
+        st.width, st.height, st.pix_fmt = size[0], size[1], "yuv420p"
+        st.options = {"crf": "18"}
+        for _ in range(repeat):
+            for f in frames:
+                for pkt in st.encode(av.VideoFrame.from_ndarray(f, format="bgr24")):
+                    c.mux(pkt)
+        for pkt in st.encode():
+            c.mux(pkt)
+    tmp.rename(out)
+    return out
+
+
 DETECT_ONLY = """
 import sys, time, json
 from capture.detector import Detector, detect_video
@@ -187,6 +214,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", help="folder kept between runs (take, actor, detector); default: a temporary one")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results"))
     ap.add_argument("--no-live", action="store_true")
+    ap.add_argument("--memory", action="store_true", help="only: peak memory of capture run at 1920x1080 (all "
+                    "exports but the overlay) on the take and on it played 4 times")
     ap.add_argument("--quick", action="store_true", help="check that it runs: 24 frames at 320x240, 1 repeat")
     args = ap.parse_args(argv)
     if args.quick:
@@ -210,6 +239,8 @@ def _measure(args, work: Path) -> dict:
 
     s = setup(work, args.frames, args.size)
     py = sys.executable
+    if args.memory:
+        return _memory(s, work)
     both = set(range(min(2, os.cpu_count() or 1)))
     rows: dict[str, list] = {}
 
@@ -279,6 +310,23 @@ def _measure(args, work: Path) -> dict:
     if not args.quick:
         write_text(out / "pipeline.json", json.dumps({"summary": summary, "rows": rows}, indent=2))
     return {"summary": summary, "rows": rows}
+
+
+def _memory(s: dict, work: Path) -> dict:
+    rows = []
+    for repeat in (1, 4):
+        video = upscaled(s["video"], work / f"take_1080p_x{repeat}.mp4", (1920, 1080), repeat)
+        out = work / f"mem_{repeat}"
+        shutil.rmtree(out, ignore_errors=True)
+        res = _child([sys.executable, "-m", "capture.cli", "run", str(video), "--actor", str(s["actor"]), "--camera",
+                      str(s["camera"]), "--detector", str(s["detector"]), "--formats", "obj,usd,npz", "--out",
+                      str(out), "--no-progress", "--overwrite"], None)
+        rep = json.loads((out / "report.json").read_text())
+        rows.append({"frames": rep["frames"]["requested"], "peak_rss_mb": res["peak_rss_mb"], "wall_s": res["wall_s"]})
+        print(f"  1920x1080, {rows[-1]['frames']} frames, obj+usd+npz: peak RSS {res['peak_rss_mb']:.0f} MB, "
+              f"{res['wall_s']:.1f} s (load average {os.getloadavg()[0]:.1f})")
+        shutil.rmtree(out, ignore_errors=True)
+    return {"memory": rows}
 
 
 if __name__ == "__main__":
