@@ -150,8 +150,10 @@ def _child(cmd: list[str], cores: set[int] | None, watch: Path | None = None) ->
     import threading
 
     pipes = {}
-    reader = threading.Thread(target=lambda: pipes.update(zip(("out", "err"), proc.communicate())), daemon=True)
-    reader.start()                                   # drains the pipes while we wait
+    readers = [threading.Thread(target=lambda k=k, f=f: pipes.__setitem__(k, f.read()), daemon=True)
+               for k, f in (("out", proc.stdout), ("err", proc.stderr))]
+    for t in readers:                                # drain the pipes while we wait (wait4 reaps the child)
+        t.start()
     while True:
         if watch is not None and seen is None and watch.exists():
             seen = time.perf_counter() - t0
@@ -161,7 +163,8 @@ def _child(cmd: list[str], cores: set[int] | None, watch: Path | None = None) ->
         time.sleep(0.005)
     wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)
-    reader.join()
+    for t in readers:
+        t.join()
     out, err = pipes.get("out", ""), pipes.get("err", "")
     if proc.returncode:
         raise RuntimeError(f"{' '.join(cmd[:4])} failed ({proc.returncode}): {err.strip()[-2000:]}")
