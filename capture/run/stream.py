@@ -265,7 +265,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                         ids = [i for i in range(g, g + plan.seg_len[g]) if i in buf]
                         lanes.append(Lane(ids, [buf[i] for i in ids], TrackState()))
                     det.run_lanes(lanes, q, batch_size=len(group))
-                    del buf, group
+                    del buf
                     for lane in lanes:
                         lane.frames = []        # let go of the decoded frames before waiting for the next group
                     for g, lane in zip(group, lanes):
