@@ -206,12 +206,11 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     import torch
 
     from capture.detector.pipeline import _segment_path, _write_segment, stack_frames
+    from capture.detector.runtime import Lane, TrackState
     from capture.export import EXPORTERS, open_exporters
     from capture.fit.stream import fit_take_stream
     from capture.io.video import VideoReader
-    from capture.run.stages import (DONE_JSON, EXPORT_JSON, FIT_CHUNK, LANDMARKS, fit_dir_for, fit_key, windowed_fit)
-
-    from capture.detector.runtime import Lane, TrackState
+    from capture.run.stages import DONE_JSON, EXPORT_JSON, FIT_CHUNK, LANDMARKS, fit_dir_for, fit_key, windowed_fit
 
     cfg = inputs.config
     det = inputs.detector
