@@ -44,7 +44,9 @@ class StreamLandmarkSource:
     """A take's landmarks read frame by frame; hands :func:`capture.fit.take._run_windows` its windows.
 
     Holds the rows from the oldest frame still needed (released as windows finish) and, for the poses,
-    the per-frame PnP results of the whole take so far (12 numbers a frame).
+    the per-frame PnP results of the whole take so far (12 numbers a frame; the poses of a window are
+    recomputed from them, which costs a few ms per window on a take of 10k frames). Causal: only the
+    frames not yet released, so a live session can run for hours.
     """
 
     def __init__(self, frames: Iterable, model_points: np.ndarray, K: np.ndarray, dist: np.ndarray,
@@ -69,6 +71,9 @@ class StreamLandmarkSource:
         self.ended = False
         sigma = pnp.smooth_sigma_frames
         self.radius = 0 if (causal or sigma <= 0) else int(4.0 * float(sigma) + 0.5)
+        self.held = None                          # causal: last good pose, and the pose of each frame held
+        self.first_pose = None
+        self.causal_pose: dict[int, tuple | None] = {}
         self.wait_s = 0.0                         # time spent waiting for frames
         self.pnp_s = 0.0
 
@@ -105,9 +110,15 @@ class StreamLandmarkSource:
             self.last_good = j
             self.n_good += 1
         self.pnp_s += time.perf_counter() - t0
-        self.R.append(res[0] if res is not None else np.eye(3))
-        self.t.append(res[1] if res is not None else np.zeros(3))
-        self.ok.append(res is not None)
+        if self.causal:      # the pose held from the last good frame (None before the first): O(1) per frame
+            if res is not None:
+                self.first_pose = self.first_pose or res
+                self.held = res
+            self.causal_pose[j] = self.held
+        else:
+            self.R.append(res[0] if res is not None else np.eye(3))
+            self.t.append(res[1] if res is not None else np.zeros(3))
+            self.ok.append(res is not None)
         self.n += 1
         return True
 
@@ -123,12 +134,10 @@ class StreamLandmarkSource:
     def _poses(self, s: int, e: int) -> tuple[np.ndarray, np.ndarray]:
         if self.last_good < 0:
             raise ValueError("no frame has enough landmarks for a head pose (PnP failed everywhere)")
+        if self.causal:      # frames before the first face hold the first good pose
+            poses = [self.causal_pose[j] or self.first_pose for j in range(s, e)]
+            return np.stack([q[0] for q in poses]), np.stack([np.asarray(q[1]).reshape(3) for q in poses])
         R, t, ok = np.stack(self.R), np.stack(self.t), np.asarray(self.ok)
-        if self.causal:
-            good = np.flatnonzero(ok)
-            src = np.maximum.accumulate(np.where(ok, np.arange(len(ok)), -1))
-            src = np.where(src < 0, good[0], src)
-            return R[src][s:e], t[src][s:e]
         R, t = interpolate_poses(R, t, ok)
         R, t = smooth_poses(R, t, self.pnp.smooth_sigma_frames)
         return R[s:e], t[s:e]
@@ -164,6 +173,7 @@ class StreamLandmarkSource:
     def release(self, before: int) -> None:
         for j in [j for j in self.p if j < before]:
             del self.p[j], self.w[j]
+            self.causal_pose.pop(j, None)
 
 
 def fit_take_stream(actor, frames: Iterable, template_points: np.ndarray, camera: Camera,
