@@ -44,7 +44,7 @@ from typing import Callable
 import numpy as np
 
 from capture.io.errors import CaptureError
-from capture.run.stream import Pipeline, StageClock, _END, _frame_weights
+from capture.run.stream import _END, Pipeline, StageClock, _frame_weights, _Stopped
 
 DEFAULT_LAG = 5
 LIVE_FORMATS = ("npz", "usd")
@@ -327,12 +327,14 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
                 pl.stop.set()
                 if say:
                     say("capture live: stopped; writing the take")
+    except _Stopped:                          # a stage failed: raise its error
+        pl.close()
+        pl.check()
+        raise
     except BaseException:
         pl.close()
-        sink.close()
         raise
     pl.close()
-    sink.close()
     wall = time.perf_counter() - t_start
     summary = {
         "format": "capture-live", "version": 1, "source": str(cfg.source), "label": label,
