@@ -108,7 +108,7 @@ def mobilenet_detector(out_dir: Path, template_points: np.ndarray, margin: float
 
 def setup(work: Path, frames: int, size: str) -> dict:
     """Actor (the demo actor + a 468-landmark embedding), take and detector in ``work`` (reused if there)."""
-    from capture.detector.embedding import read_embedding, embedded_points, write_embedding, parse_embedding
+    from capture.detector.embedding import embedded_points, parse_embedding, write_embedding
 
     actor, take, det = work / "actor", work / f"take_{frames}_{size}", work / "detector"
     if not actor.is_dir():

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import socket
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -130,7 +129,7 @@ class _Fit:
 def test_usd_points_written_in_bulk_read_back(tmp_path):
     """Blocks of frames authored at once (usd_save_every 4, 10 frames, one skipped) read back per time code
     as diag(1,-1,-1) @ p_cam, with extents, and the mesh invisible on the skipped frame only."""
-    pxr = pytest.importorskip("pxr")
+    pytest.importorskip("pxr")
     from pxr import Usd, UsdGeom
 
     from capture.export import ExportContext, ExportOptions, open_exporters
