@@ -215,8 +215,8 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
 
     pl = Pipeline()
     frames_in = queue.Queue(maxsize=max(1, cfg.queue_frames))   # capture -> detect (drops when full)
-    lms = pl.pipe(64)
-    fits = pl.pipe(64)
+    lms = pl.pipe(max(1, cfg.queue_frames))      # small: a busy fit makes the capture drop, not queue
+    fits = pl.pipe(8)
     clocks = {k: StageClock() for k in ("capture", "detect", "fit", "export")}
     stats = {"received": 0, "dropped": 0, "processed": 0}
     t_src: dict[int, float] = {}          # source frame -> capture time
