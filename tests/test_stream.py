@@ -153,3 +153,19 @@ def test_usd_points_written_in_bulk_read_back(tmp_path):
         np.testing.assert_array_equal(p, (v.astype(np.float64) * [1, -1, -1]).astype(np.float32))
         np.testing.assert_array_equal(np.asarray(mesh.GetExtentAttr().Get(j + 100)), [p.min(0), p.max(0)])
         assert mesh.GetVisibilityAttr().Get(j + 100) == UsdGeom.Tokens.inherited
+
+
+def test_the_command_line_loads_without_heavy_imports():
+    """capture --help (and the start of every command) must not import torch, pxr, av, ray or trimesh:
+    they take seconds; each command imports what it needs when it runs."""
+    import subprocess
+    import sys
+
+    code = ("import sys, capture.cli; from capture.cli import main; "
+            "heavy = sorted(m for m in ('torch', 'pxr', 'av', 'ray', 'trimesh', 'scipy', 'onnxruntime') "
+            "if m in sys.modules); print(','.join(heavy))")
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True,
+                       env={**__import__("os").environ, "PYTHONPATH": str(root)})
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == ""
