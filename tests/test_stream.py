@@ -5,8 +5,12 @@ bulk read back as written."""
 from __future__ import annotations
 
 import json
+import os
 import socket
+import subprocess
+import sys
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -158,14 +162,11 @@ def test_usd_points_written_in_bulk_read_back(tmp_path):
 def test_the_command_line_loads_without_heavy_imports():
     """capture --help (and the start of every command) must not import torch, pxr, av, ray or trimesh:
     they take seconds; each command imports what it needs when it runs."""
-    import subprocess
-    import sys
-
     code = ("import sys, capture.cli; from capture.cli import main; "
             "heavy = sorted(m for m in ('torch', 'pxr', 'av', 'ray', 'trimesh', 'scipy', 'onnxruntime') "
             "if m in sys.modules); print(','.join(heavy))")
-    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[1]
     r = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True,
-                       env={**__import__("os").environ, "PYTHONPATH": str(root)})
+                       env={**os.environ, "PYTHONPATH": str(root)})
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == ""
