@@ -9,10 +9,12 @@ decoding, onnxruntime, torch, file writes)::
                     its frames (and the initial poses they depend on) are there
     main thread     the exporters (and a second VideoReader when the overlay needs images) -> files
 
-Queues hold at most :data:`QUEUE_FRAMES` frames; the decoder works at most one group of detection segments
-(:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector, so memory stays flat in the take's
-length (about 1.3 GB peak at 1920x1080, ``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop event: an error or an interrupt in any stage stops all of them,
-and the error is raised in the main thread (where SIGTERM and Ctrl-C arrive).
+Queues hold at most :data:`QUEUE_FRAMES` frames; the decoder works at most one group of detection
+segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector and frames are
+allocated off the heap (:func:`_frames_off_heap`), so memory stays flat in the take's length (about
+1.1 GB peak at 1920x1080, ``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
+event: an error or an interrupt in any stage stops all of them (a fit window being solved finishes
+first, and is kept), and the error is raised in the main thread (where SIGTERM and Ctrl-C arrive).
 
 The results are those of the stage-by-stage run (:mod:`capture.run.stages`), to the bit: detection
 segments are the same independent tracking units, written to the same cache; the fit is the same
