@@ -8,8 +8,10 @@ Pure computation on corner lists (no files, no video). :func:`calibrate_views`:
    are rejected and the solve repeated, up to ``max_rounds`` times, never below ``min_views``.
 2. **Model choice** (``model="auto"``): every candidate model (:mod:`calib.models`) is scored by the
    hold-out check (:mod:`calib.holdout`: views left out, their error predicted by the model fitted to
-   the others). The simplest model whose hold-out error is within ``model_tolerance`` (2 %) of the
-   best is chosen: a term the data cannot determine does not lower the hold-out error, so it is left out.
+   the others, and the spread over the image of the models fitted without them). OpenCV's default
+   model is kept unless the check clearly supports another (:func:`choose_model`): a richer model
+   must predict the left-out views better, a simpler one is taken when the default is unstable
+   over the image (undetermined terms) and the simpler one predicts as well.
 3. **Final solve** with the chosen model on all kept views, with the full intrinsic covariance
    (:mod:`calib.uncertainty`) and the hold-out cameras of that model for the report.
 
@@ -45,7 +47,8 @@ class CalibrationOptions:
     outlier_floor_px: float = 1.0  # views below this RMS are never outliers
     max_rounds: int = 3
     folds: int = 6  # hold-out folds (leave-one-out when there are fewer views)
-    model_tolerance: float = 0.02  # simplest model within this fraction of the best hold-out error
+    model_tolerance: float = 0.02  # a simpler model may be this much worse on hold-out (see choose_model)
+    tolerance_px: float = 1.0  # hold-out spread over the image that makes a model unstable
     rational_min_views: int = 10  # fewer views cannot pin 8 distortion terms: not a candidate
 
     def candidates(self) -> list[DistortionModel]:
@@ -160,12 +163,22 @@ def calibrate_views(
     if len(candidates) > 1:
         candidates = [m for m in candidates if m.radial != 6 or len(active) >= options.rational_min_views] \
             or candidates
-    checks = {m.name: holdout_check(obj_a, img_a, image_size, m, options) for m in candidates}
+    solves = {first.name: s}
+    checks = {}
+    for m in candidates:
+        if m.name not in solves:
+            try:
+                solves[m.name] = solve(obj_a, img_a, image_size, m, options)
+            except CaptureError:
+                continue
+        full = Camera(solves[m.name].K, solves[m.name].dist, image_size)
+        checks[m.name] = holdout_check(obj_a, img_a, image_size, m, options, full)
+    candidates = [m for m in candidates if m.name in checks]
+    model = choose_model(candidates, checks, first, options.tolerance_px, options.model_tolerance)
     scores = {name: c.rms_px for name, c in checks.items()}
-    model = choose_model(candidates, scores, options.model_tolerance)
 
-    # 3. final solve
-    s = solve(obj_a, img_a, image_size, model, options) if model != first else s
+    # 3. the chosen model's solve on all kept views
+    s = solves[model.name]
     std = {name: float(s.std_int[k]) for k, name in enumerate(STD_NAMES[: 4 + model.n_dist]) if k < len(s.std_int)}
     fixed = {"cx", "cy"} if options.fix_principal_point else set()
     fixed |= {STD_NAMES[4 + k] for k in range(model.n_dist) if k not in model.free_terms}
@@ -177,14 +190,35 @@ def calibrate_views(
                              s.rvecs, s.tvecs, rounds, obj_a, img_a)
 
 
-def choose_model(models: list[DistortionModel], scores: dict[str, float], tolerance: float) -> DistortionModel:
-    """The model with the fewest terms whose hold-out RMS is within ``tolerance`` of the best one."""
-    finite = [m for m in models if np.isfinite(scores[m.name])]
-    if not finite:
+def choose_model(models: list[DistortionModel], checks: dict[str, HoldoutResult], base: DistortionModel,
+                 tolerance_px: float = 1.0, model_tolerance: float = 0.02, gain: float = 0.03) -> DistortionModel:
+    """The lens model the hold-out check supports, starting from ``base`` (OpenCV's default model).
+
+    - A model with more terms replaces it only when it predicts the left-out views clearly better
+      (hold-out RMS lower by ``gain``, 3 %) without being less stable over the image (spread).
+    - When the chosen model is unstable over the image (hold-out spread above ``tolerance_px``), the
+      model among the simpler ones that predicts the left-out views as well (hold-out RMS within
+      ``model_tolerance``, 2 %) and is the most stable replaces it, if it at least a third more stable.
+      A term the data cannot determine does not improve the hold-out error but makes the spread large.
+    """
+    ok = [m for m in models if np.isfinite(checks[m.name].rms_px)]
+    if not ok:
         raise CaptureError(
             "every lens model failed the hold-out check (OpenCV could not calibrate with views left out); "
             "record the board at more positions and tilts"
         )
-    best = min(scores[m.name] for m in finite)
-    ok = [m for m in finite if scores[m.name] <= best * (1.0 + tolerance)]
-    return min(ok, key=lambda m: (m.num_params, scores[m.name]))
+    chosen = base if base in ok else min(ok, key=lambda m: checks[m.name].rms_px)
+    c = checks[chosen.name]
+    richer = [m for m in ok if m.num_params > chosen.num_params
+              and checks[m.name].rms_px < c.rms_px * (1.0 - gain)
+              and checks[m.name].spread_px <= max(c.spread_px, tolerance_px)]
+    if richer:
+        chosen = min(richer, key=lambda m: checks[m.name].rms_px)
+        c = checks[chosen.name]
+    if c.spread_px > tolerance_px:
+        simpler = [m for m in ok if m.num_params < chosen.num_params
+                   and checks[m.name].rms_px <= c.rms_px * (1.0 + model_tolerance)
+                   and checks[m.name].spread_px < c.spread_px / 1.5]
+        if simpler:
+            chosen = min(simpler, key=lambda m: checks[m.name].spread_px)
+    return chosen

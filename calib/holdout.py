@@ -30,6 +30,7 @@ class HoldoutResult:
     view_rms_px: list[float]
     fold_cameras: list[Camera] = field(repr=False, default_factory=list)
     folds: int = 0
+    spread_px: float = float("inf")  # max over the image of |fold camera - full camera| (px)
 
 
 def fold_of(n_views: int, folds: int) -> np.ndarray:
@@ -52,8 +53,11 @@ def pnp_residuals(obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndar
 
 
 def holdout_check(obj: list[np.ndarray], img: list[np.ndarray], image_size: tuple[int, int],
-                  model: DistortionModel, options) -> HoldoutResult:
-    """Run the check for one model (``options``: a :class:`calib.calibrate.CalibrationOptions`)."""
+                  model: DistortionModel, options, full: Camera | None = None) -> HoldoutResult:
+    """Run the check for one model (``options``: a :class:`calib.calibrate.CalibrationOptions`).
+
+    With ``full`` (the model calibrated on all views) the spread over the image is measured too.
+    """
     from calib.calibrate import solve
     from capture.errors import CaptureError
 
@@ -75,4 +79,10 @@ def holdout_check(obj: list[np.ndarray], img: list[np.ndarray], image_size: tupl
             sq += float(np.sum(r ** 2))
             count += len(r)
     rms = float(np.sqrt(sq / count)) if count and np.isfinite(sq) else float("inf")
-    return HoldoutResult(model.name, rms, view_rms, cameras, int(fold.max()) + 1)
+    spread = float("inf")
+    if full is not None and cameras:
+        from calib.uncertainty import pixel_grid, projection_difference
+
+        grid, _ = pixel_grid(image_size, float(np.hypot(*image_size)) / 60.0)
+        spread = float(max(projection_difference(full, c, grid).max() for c in cameras))
+    return HoldoutResult(model.name, rms, view_rms, cameras, int(fold.max()) + 1, spread)

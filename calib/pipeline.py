@@ -75,7 +75,7 @@ class CalibrateSettings:
         return CalibrationOptions(
             fix_principal_point=self.fix_principal_point, fix_aspect_ratio=self.fix_aspect_ratio,
             model=self.model, fix_k3=self.fix_k3, zero_tangent=self.zero_tangent, rational=self.rational,
-            min_views=self.min_views, outlier_factor=self.outlier_factor,
+            min_views=self.min_views, outlier_factor=self.outlier_factor, tolerance_px=self.tolerance_px,
         )
 
     def as_dict(self) -> dict:
