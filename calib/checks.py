@@ -17,16 +17,21 @@ import numpy as np
 from calib.detect import Detection
 
 
-def corner_inconsistency(detection: Detection, square_mm: float, radius: int = 2) -> np.ndarray:
-    """(n,) distance of each corner from its neighbours' prediction, in local squares; NaN if unchecked."""
+def corner_inconsistency(detection: Detection, square_mm: float, radius: int = 2,
+                         excluded: np.ndarray | None = None) -> np.ndarray:
+    """(n,) distance of each corner from its neighbours' prediction, in local squares; NaN if unchecked.
+
+    Corners flagged in ``excluded`` (n,) bool are not used as neighbours (nor checked).
+    """
     import cv2
 
     obj = detection.object_points[:, :2].astype(np.float64) / square_mm  # board grid units
     img = detection.image_points.astype(np.float64)
     out = np.full(len(obj), np.nan)
+    usable = np.ones(len(obj), bool) if excluded is None else ~excluded
     cheb = np.abs(obj[:, None, :] - obj[None, :, :]).max(2)
-    for k in range(len(obj)):
-        nb = np.nonzero((cheb[k] <= radius + 1e-6) & (cheb[k] > 1e-6))[0]
+    for k in np.nonzero(usable)[0]:
+        nb = np.nonzero((cheb[k] <= radius + 1e-6) & (cheb[k] > 1e-6) & usable)[0]
         if len(nb) < 5:
             continue
         src = obj[nb]
@@ -45,15 +50,25 @@ def corner_inconsistency(detection: Detection, square_mm: float, radius: int = 2
 
 def check_detection(detection: Detection, square_mm: float, min_corners: int, tolerance: float = 0.2,
                     max_bad_fraction: float = 0.25) -> tuple[Detection | None, str | None]:
-    """(detection without inconsistent corners, None) or (None, reason) (module docstring)."""
+    """(detection without inconsistent corners, None) or (None, reason) (module docstring).
+
+    The worst corner is removed and the others re-checked without it, until all agree: one wrong
+    corner does not condemn its neighbours.
+    """
     err = corner_inconsistency(detection, square_mm)
     checked = np.isfinite(err)
-    bad = checked & (err > tolerance)
+    n_checked = int(checked.sum())
+    bad = np.zeros(len(err), bool)
+    while np.nanmax(np.where(bad, np.nan, err), initial=0.0) > tolerance:
+        bad[int(np.nanargmax(np.where(bad, -np.inf, err)))] = True
+        if bad.sum() > max_bad_fraction * max(1, n_checked):
+            break
+        err = corner_inconsistency(detection, square_mm, excluded=bad)
     n_bad = int(bad.sum())
     if n_bad == 0:
         return detection, None
-    if n_bad > max_bad_fraction * max(1, int(checked.sum())):
-        return None, (f"fails the geometric check ({n_bad} of {int(checked.sum())} corners off their "
+    if n_bad > max_bad_fraction * max(1, n_checked):
+        return None, (f"fails the geometric check (over {n_bad - 1} of {n_checked} corners off their "
                       f"neighbours' grid by more than {tolerance:g} square)")
     keep = ~bad
     if int(keep.sum()) < min_corners:

@@ -305,9 +305,10 @@ def _print_summary(settings, camera, result, used, dropped, coverage, diag, repo
         f"  views used: {', '.join(c.label for c in used)}",
         f"  dropped: {_summary(reasons)}",
     ]
-    for d in dropped:
-        if _category(d.reason) not in ("near-duplicate", "over the cap"):
-            lines.append(f"    {d.label}: {d.reason}")
+    listed = [d for d in dropped if _category(d.reason) not in ("near-duplicate", "over the cap")]
+    lines += [f"    {d.label}: {d.reason}" for d in listed[:20]]
+    if len(listed) > 20:
+        lines.append(f"    ... {len(listed) - 20} more in {report_path.name}")
     lines += [f"warning: {w}" for w in diag.warnings]
     written_files = ([str(settings.out)] if written else []) + [str(report_path), str(plot_path), str(cov_plot)]
     lines.append(f"wrote {', '.join(written_files)}")
