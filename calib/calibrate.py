@@ -46,7 +46,7 @@ class CalibrationOptions:
     outlier_factor: float = 3.0  # 0 disables rejection
     outlier_floor_px: float = 1.0  # views below this RMS are never outliers
     max_rounds: int = 3
-    folds: int = 6  # hold-out folds (leave-one-out when there are fewer views)
+    folds: int = 5  # hold-out folds (leave-one-out when there are fewer views)
     model_tolerance: float = 0.02  # a simpler model may be this much worse on hold-out (see choose_model)
     tolerance_px: float = 1.0  # hold-out spread over the image that makes a model unstable
     rational_min_views: int = 10  # fewer views cannot pin 8 distortion terms: not a candidate

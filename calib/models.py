@@ -84,7 +84,12 @@ def model_by_name(name: str) -> DistortionModel:
 
 def candidate_models(model: str = "auto", fix_k3: bool = False, zero_tangent: bool = False,
                      rational: bool = False) -> list[DistortionModel]:
-    """The models to choose among: one if ``model`` names it, else all allowed by the constraint flags."""
+    """The models to choose among: one if ``model`` names it, else those allowed by the constraint flags.
+
+    Without ``zero_tangent`` the models without p1, p2 other than the simplest (k1-k2) are not
+    candidates: small tangential terms trade off with the principal point, and leaving them out
+    moves it even when the hold-out error cannot tell the difference.
+    """
     if model != "auto":
         chosen = model_by_name(model)
         if (fix_k3 and chosen.radial != 2) or (rational and chosen.radial != 6) or (zero_tangent and chosen.tangential):
@@ -95,4 +100,6 @@ def candidate_models(model: str = "auto", fix_k3: bool = False, zero_tangent: bo
     out = [m for m in MODELS
            if not (fix_k3 and m.radial != 2) and not (rational and m.radial != 6)
            and not (zero_tangent and m.tangential)]
+    if not zero_tangent:  # keep p1, p2 (they trade off with the principal point) unless told
+        out = [m for m in out if m.tangential or m == DistortionModel(2, False)]
     return out

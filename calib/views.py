@@ -1,4 +1,4 @@
-"""Choosing calibration views: drop only unusable views, then (over ``--max-views``) keep the most useful.
+"""Choosing calibration views: drop only unusable views; over ``--max-views`` keep the most useful.
 
 Everything here works on :class:`Candidate` records (a detection plus a few numbers measured on its
 frame); no file or video access. A view is dropped only for a reason that makes it unusable on its
@@ -12,13 +12,16 @@ own, never for being worse than the other views:
    refinement stays unbiased under blur as long as the blurred edges of a square do not merge, so a
    view is *blurred* only when the edge width exceeds ``max_blur`` (0.4) times the board's square
    size in that view (``square_px``). This does not depend on the other views.
-3. **Near-duplicates.** Two views are near-duplicates when they share at least half of their corners
-   and those corners moved on average less than ``duplicate_px`` pixels (default 1 % of the image
-   diagonal); the sharper one is kept (a board held still in a video gives many such frames).
-4. **Over the cap.** Only when more than ``max_views`` views remain are some left out: views are picked
-   greedily, each time the one that adds the most new cells of a coverage grid, a new board-tilt bin
-   (15 degrees, from a rough PnP pose), distance to the chosen views in (position, size, tilt), and
-   sharpness. The rest are listed as "over the cap".
+3. **Near-duplicates** are views that share at least half of their corners with a distinct view
+   and whose corners moved on average less than ``duplicate_px`` (default 1 % of the image
+   diagonal) (a board held still in a video gives many). They add little geometry but independent
+   corner noise, so they are kept while the views fit under ``max_views``; only over the cap are
+   they the first to go (the sharpest twin of each group is the distinct view).
+4. **Over the cap.** When more than ``max_views`` distinct views remain, they are picked greedily,
+   each time the one that adds the most new cells of a coverage grid, a new board-tilt bin (15
+   degrees, from a rough PnP pose), distance to the chosen views in (position, size, tilt), and
+   sharpness; the rest are listed as "over the cap". Free places under the cap are filled with
+   near-duplicates, sharpest first; the others are listed as "near-duplicate of" their twin.
 """
 
 from __future__ import annotations
@@ -158,12 +161,12 @@ def make_candidate(label: str, frame: int, gray: np.ndarray, detection: Detectio
     )
 
 
-def _is_duplicate(a: Candidate, b: Candidate, duplicate_px: float) -> bool:
+def _motion(a: Candidate, b: Candidate) -> float:
+    """Mean motion (px) of the corners two views share, or inf if they share fewer than half."""
     common, ia, ib = np.intersect1d(a.detection.ids, b.detection.ids, return_indices=True)
     if len(common) < 0.5 * min(len(a.detection.ids), len(b.detection.ids)):
-        return False
-    moved = np.linalg.norm(a.detection.image_points[ia] - b.detection.image_points[ib], axis=1).mean()
-    return bool(moved < duplicate_px)
+        return float("inf")
+    return float(np.linalg.norm(a.detection.image_points[ia] - b.detection.image_points[ib], axis=1).mean())
 
 
 def select_views(
@@ -192,20 +195,25 @@ def select_views(
         else:
             pool.append(c)
 
-    # 3. near-duplicates, sharpest first
-    kept: list[Candidate] = []
+    # 3. near-duplicates of distinct views (sharpest first)
+    distinct: list[Candidate] = []
+    twins: list[tuple[Candidate, Candidate]] = []
     for c in sorted(pool, key=lambda c: c.blur):
-        twin = next((k for k in kept if _is_duplicate(c, k, duplicate_px)), None)
+        twin = next((k for k in distinct if _motion(c, k) < duplicate_px), None)
         if twin is None:
-            kept.append(c)
+            distinct.append(c)
         else:
-            dropped.append(Dropped(c.label, c.frame, f"near-duplicate of {twin.label}"))
+            twins.append((c, twin))
 
-    # 4. greedy coverage / tilt / diversity / sharpness, only when over the cap
-    if len(kept) <= max_views:
-        chosen, remaining = kept, []
+    # 4. the cap: distinct views first (greedy when too many), then near-duplicates
+    if len(distinct) <= max_views:
+        chosen, remaining = list(distinct), []
     else:
-        chosen, remaining = _greedy(kept, image_size, max_views)
+        chosen, remaining = _greedy(distinct, image_size, max_views)
+    room = max_views - len(chosen)
+    chosen += [c for c, _ in twins[:room]]
+    for c, twin in twins[room:]:
+        dropped.append(Dropped(c.label, c.frame, f"near-duplicate of {twin.label}"))
     for c in remaining:
         dropped.append(Dropped(c.label, c.frame, f"over the cap of {max_views} views (adds least coverage/tilt)"))
     chosen = sorted(chosen, key=lambda c: c.frame)
