@@ -41,7 +41,7 @@ from calib.camera import Camera  # noqa: E402
 from calib.camera_io import read_camera  # noqa: E402
 from calib.pipeline import CalibrateSettings, run_calibrate  # noqa: E402
 from calib.uncertainty import pixel_grid, projection_difference  # noqa: E402
-from capture.atomic import write_text  # noqa: E402
+from capture.io.atomic import write_text  # noqa: E402
 from tests.calib_synth import Renderer, operator_poses, write_images  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -27,7 +27,7 @@ import numpy as np
 from calib.camera import Camera
 from calib.holdout import HoldoutResult, holdout_check
 from calib.models import OPENCV_DEFAULT, DistortionModel, candidate_models
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 STD_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 

@@ -37,8 +37,8 @@ from calib.checks import check_detection
 from calib.diagnostics import Diagnostics, diagnose
 from calib.plots import save_coverage_plot
 from calib.views import MAX_BLUR, Candidate, Dropped, coverage_fraction, make_candidate, select_views
-from capture.atomic import write_json
-from capture.errors import CaptureError
+from capture.io.atomic import write_json
+from capture.io.errors import CaptureError
 
 REPORT_VERSION = 2
 
