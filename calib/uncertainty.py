@@ -107,7 +107,7 @@ def intrinsic_covariance(camera: Camera, model: DistortionModel, object_points: 
 
     dist = np.zeros(model.n_dist)
     dist[: len(camera.dist)] = camera.dist[: model.n_dist]
-    A, S_sub, sq, n_res, names = None, None, 0.0, 0, ()
+    sq, n_res, names = 0.0, 0, ()
     blocks = []
     for obj, img, r, t in zip(object_points, image_points, rvecs, tvecs):
         proj, jac = cv2.projectPoints(np.asarray(obj, np.float64).reshape(-1, 3), np.asarray(r, np.float64),

@@ -116,3 +116,12 @@ def test_bench_scale_quick(tmp_path):
     res = main(["--quick", "--out", str(tmp_path)])
     assert [r["frames"] for r in res["rows"] if r["series"] == "length"] == [6, 12]
     assert all(r["peak_rss_mb"] > 0 for r in res["rows"]) and (tmp_path / "scale.png").is_file()
+
+
+def test_bench_calib_quick():
+    from benchmarks.bench_calib import main
+
+    res = main(["--quick"])
+    (row,) = res["rows"]
+    assert row["condition"] == "h264" and row["plain_views"] > 0 and row["ours_views"] > 0
+    assert np.isfinite(row["ours_max_px"]) and np.isfinite(row["plain_max_px"])

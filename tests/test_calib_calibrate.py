@@ -23,7 +23,7 @@ from calib.board import BoardSpec, parse_board
 from calib.calibrate import CalibrationOptions, calibrate_views
 from calib.camera_io import read_camera
 from calib.detect import BoardDetector
-from calib.models import DIST_NAMES, MODEL_NAMES, model_by_name
+from calib.models import DIST_NAMES, model_by_name
 from capture.io.errors import CaptureError
 from tests.calib_synth import (CHARUCO_SPEC, CHECKER_SPEC, IMAGE_SIZE, TRUE_DIST, TRUE_K, Renderer,
                                random_poses, write_images, write_video)
@@ -64,6 +64,14 @@ def charuco():
     poses = random_poses(renderer.board, TRUE_K, IMAGE_SIZE, 16, seed=3)
     rng = np.random.default_rng(1)
     return renderer, poses, [renderer.render(p, rng=rng) for p in poses]
+
+
+@pytest.fixture(scope="module")
+def charuco_detections(charuco):
+    renderer, _poses, images = charuco
+    detector = BoardDetector(renderer.board)
+    dets = [detector.detect(img)[0] for img in images]
+    return [d.object_points for d in dets], [d.image_points for d in dets]
 
 
 @pytest.fixture(scope="module")
@@ -197,42 +205,49 @@ def test_max_views_cap_keeps_coverage(charuco_folder, tmp_path, capsys):
     assert abs(cam.fx / TRUE_K[0, 0] - 1) < 0.01  # fewer views: looser, still close
 
 
-@pytest.mark.parametrize(
-    "flag, check",
-    [
-        ("--fix-principal-point", lambda c: (c.cx, c.cy) == ((640 - 1) / 2, (480 - 1) / 2)),
-        ("--fix-aspect-ratio", lambda c: c.fx == c.fy),
-        ("--fix-k3", lambda c: c.dist[4] == 0.0 and c.dist[0] != 0.0),
-        ("--rational", lambda c: c.dist.size == 8),
-        ("--zero-tangent", lambda c: c.dist[2] == c.dist[3] == 0.0 and c.dist[0] != 0.0),
-    ],
-)
-def test_calibration_flags(charuco_folder, tmp_path, capsys, flag, check):
+def test_calibration_flags_reach_opencv(charuco_folder, tmp_path, capsys):
     out = tmp_path / "c.json"
-    code, _, err = run(["calibrate", str(charuco_folder), "--board", CHARUCO_SPEC, "--out", str(out), flag,
+    code, _, err = run(["calibrate", str(charuco_folder), "--board", CHARUCO_SPEC, "--out", str(out),
+                        "--fix-principal-point", "--fix-aspect-ratio", "--zero-tangent", "--max-views", "10",
                         "--no-progress"], capsys)
     assert code == 0, err
-    assert check(read_camera(out))
+    c = read_camera(out)
+    assert (c.cx, c.cy) == ((640 - 1) / 2, (480 - 1) / 2) and c.fx == c.fy
+    assert c.dist[2] == c.dist[3] == 0.0 and c.dist[0] != 0.0
     report = json.loads((tmp_path / "c.report.json").read_text())
-    assert report["flags"][flag[2:].replace("-", "_")] is True
-    allowed = {"--fix-k3": {"k1-k2", "k1-k2+p"}, "--rational": {"k1-k6", "k1-k6+p"},
-               "--zero-tangent": {"k1-k2", "k1-k3", "k1-k6"}}.get(flag, set(MODEL_NAMES))
-    assert report["model"] in allowed and set(report["model_holdout_rms_px"]) <= allowed
+    assert all(report["flags"][k] for k in ("fix_principal_point", "fix_aspect_ratio", "zero_tangent"))
+    assert report["model"] in {"k1-k2", "k1-k3", "k1-k6"}
+    assert set(report["model_holdout_rms_px"]) == {"k1-k2", "k1-k3", "k1-k6"}
+    assert set(report["std_dev"]) == {"fx", "fy", "k1", "k2"} | ({"k3"} if report["model"] != "k1-k2" else set()) \
+        | ({"k4", "k5", "k6"} if report["model"] == "k1-k6" else set())
 
 
-def test_outlier_view_is_rejected_and_recalibrated(charuco):
-    renderer, poses, images = charuco
-    detector = BoardDetector(renderer.board)
-    dets = [detector.detect(img)[0] for img in images]
-    obj = [d.object_points for d in dets]
-    img = [d.image_points.copy() for d in dets]
+@pytest.mark.parametrize(
+    "options, check",
+    [
+        (CalibrationOptions(fix_k3=True), lambda r: r.camera.dist[4] == 0.0 and r.model.radial == 2),
+        (CalibrationOptions(rational=True), lambda r: r.camera.dist.size == 8 and r.model.radial == 6),
+        (CalibrationOptions(model="k1-k3+p"), lambda r: list(r.model_scores) == ["k1-k3+p"]),
+    ],
+    ids=["fix-k3", "rational", "model"],
+)
+def test_model_restrictions(charuco_detections, options, check):
+    obj, img = charuco_detections
+    result = calibrate_views(obj, img, [f"v{i}" for i in range(len(obj))], IMAGE_SIZE, options)
+    assert check(result)
+    assert_intrinsics_recovered(result.camera)
+
+
+def test_outlier_view_is_rejected_and_recalibrated(charuco_detections):
+    obj, img = charuco_detections
+    img = [p.copy() for p in img]
     rng = np.random.default_rng(0)
     img[5] = img[5] + rng.normal(0, 3.0, img[5].shape).astype(np.float32)  # a mis-detected view
-    labels = [f"v{i}" for i in range(len(dets))]
+    labels = [f"v{i}" for i in range(len(obj))]
     result = calibrate_views(obj, img, labels, IMAGE_SIZE, CalibrationOptions())
     assert [v.label for v in result.rejected] == ["v5"]
     assert result.rejected[0].rms_px > 2.0
-    assert "v5" not in [v.label for v in result.views] and len(result.views) == len(dets) - 1
+    assert "v5" not in [v.label for v in result.views] and len(result.views) == len(obj) - 1
     assert_intrinsics_recovered(result.camera)
     kept = calibrate_views(obj, img, labels, IMAGE_SIZE, CalibrationOptions(outlier_factor=0))
     assert kept.rms_px > 3 * result.rms_px  # without rejection the bad view dominates the RMS

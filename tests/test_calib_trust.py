@@ -220,17 +220,15 @@ def test_strict_fails_when_the_image_corners_are_not_covered(tmp_path, capsys):
     folder = tmp_path / "centre"
     write_images(folder, [renderer.render(p, rng=rng) for p in poses])
     out = tmp_path / "cam.json"
-    code = main(["calibrate", str(folder), "--board", SPEC, "--out", str(out), "--no-progress"])
-    stdout, _ = capsys.readouterr()
-    assert code == 0 and out.is_file()
+    code = main(["calibrate", str(folder), "--board", SPEC, "--out", str(out), "--no-progress", "--strict"])
+    stdout, err = capsys.readouterr()
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("capture: error: calibration not trusted")
+    assert "image corners top-left, top-right, bottom-left, bottom-right not covered" in lines[0]
+    assert "warning: image corner" in stdout  # the summary still says what was found
+    assert not out.exists()
     report = json.loads((tmp_path / "cam.report.json").read_text())
-    assert any("not covered" in w for w in report["warnings"]) and "warning: image corner" in stdout
+    assert report["camera_written"] is False and any("not covered" in w for w in report["warnings"])
     assert report["uncertainty"]["max_px"] > report["uncertainty"]["median_px"] > 0
     png = tmp_path / "cam.coverage.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and cv2.imread(str(png)).shape[1] > 1000
-    out.unlink()
-    code = main(["calibrate", str(folder), "--board", SPEC, "--out", str(out), "--no-progress", "--strict"])
-    _, err = capsys.readouterr()
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert code == 2 and len(lines) == 1 and lines[0].startswith("capture: error: calibration not trusted")
-    assert not out.exists() and json.loads((tmp_path / "cam.report.json").read_text())["camera_written"] is False
