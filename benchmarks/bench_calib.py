@@ -205,18 +205,43 @@ def summarise(rows: list[dict]) -> dict:
     return out
 
 
+def markdown_table(rows: list[dict]) -> str:
+    """One line per (lens, condition, views): ours vs plain, max over the image, per seed."""
+    out = ["| lens | input | views | ours max px (per seed) | plain max px (per seed) | ours - plain, worst | "
+           "ours mean px | plain mean px | ours <= 1 px | plain <= 1 px | runs warned | model(s) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["lens"], r["condition"], r["views"]), []).append(r)
+    for (lens, cond, views), rs in groups.items():
+        ours = " / ".join(f"{r['ours_max_px']:.2f}" for r in rs)
+        plain = " / ".join(f"{r['plain_max_px']:.2f}" for r in rs)
+        out.append(
+            f"| {lens} | {cond} | {views} | {ours} | {plain} | "
+            f"{max(r['ours_max_px'] - r['plain_max_px'] for r in rs):+.2f} | "
+            f"{np.mean([r['ours_mean_px'] for r in rs]):.2f} | {np.mean([r['plain_mean_px'] for r in rs]):.2f} | "
+            f"{sum(r['ours_max_px'] <= 1 for r in rs)}/{len(rs)} | {sum(r['plain_max_px'] <= 1 for r in rs)}/{len(rs)} | "
+            f"{sum(bool(r['warnings']) for r in rs)}/{len(rs)} | {', '.join(sorted(set(r['model'] for r in rs)))} |")
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one case, to check the script runs")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--issue", action="store_true", help="the issue's 1920x1080, 9x6-board case instead")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--table", type=Path, help="only print the table of a results JSON written before")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--views", default=",".join(map(str, VIEWS)))
     args = ap.parse_args(argv)
     for c in [c for c in CONDITIONS if c not in args.conditions.split(",")]:
         del CONDITIONS[c]
     VIEWS_SEL = tuple(int(v) for v in args.views.split(","))
+    if args.table:
+        res = json.loads(args.table.read_text())
+        print(markdown_table(res["rows"]))
+        return res
     cv2.setNumThreads(1)
     rows = []
     if args.issue:
@@ -238,6 +263,7 @@ def main(argv: list[str] | None = None) -> dict:
     res = {"rows": rows, "summary": summarise(rows),
            "worst_excess_px": max(r["ours_max_px"] - r["plain_max_px"] for r in rows),
            "worst_ours_max_px": max(r["ours_max_px"] for r in rows)}
+    print(markdown_table(rows))
     print(f"worst: ours max {res['worst_ours_max_px']:.3f} px; ours - plain at most {res['worst_excess_px']:+.3f} px")
     if not args.quick:
         args.out.mkdir(parents=True, exist_ok=True)

@@ -194,6 +194,8 @@ def choose_model(models: list[DistortionModel], checks: dict[str, HoldoutResult]
                  tolerance_px: float = 1.0, model_tolerance: float = 0.02, gain: float = 0.03) -> DistortionModel:
     """The lens model the hold-out check supports, starting from ``base`` (OpenCV's default model).
 
+    ``models`` must all have a full solve and an entry in ``checks``.
+
     - A model with more terms replaces it only when it predicts the left-out views clearly better
       (hold-out RMS lower by ``gain``, 3 %) without being less stable over the image (spread).
     - When the chosen model is unstable over the image (hold-out spread above ``tolerance_px``), the
@@ -202,11 +204,8 @@ def choose_model(models: list[DistortionModel], checks: dict[str, HoldoutResult]
       A term the data cannot determine does not improve the hold-out error but makes the spread large.
     """
     ok = [m for m in models if np.isfinite(checks[m.name].rms_px)]
-    if not ok:
-        raise CaptureError(
-            "every lens model failed the hold-out check (OpenCV could not calibrate with views left out); "
-            "record the board at more positions and tilts"
-        )
+    if not ok:  # no model could be checked (the diagnostics warn): keep OpenCV's default
+        return base if base in models else models[0]
     chosen = base if base in ok else min(ok, key=lambda m: checks[m.name].rms_px)
     c = checks[chosen.name]
     richer = [m for m in ok if m.num_params > chosen.num_params

@@ -16,7 +16,7 @@ It warns (and ``--strict`` fails) when the model extrapolates or is not determin
   tolerance); the distortion terms whose 1 sigma alone moves the farthest image corner by more than
   ``tolerance_px / 2`` are named as not determined;
 - the hold-out spread exceeds ``tolerance_px`` somewhere: leaving some views out changes the model
-  there by more than the tolerance.
+  there by more than the tolerance (or the check could not be run at all).
 """
 
 from __future__ import annotations
@@ -103,6 +103,9 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
             + (f"; distortion term(s) {', '.join(loose)} not determined" if loose else "")
             + "; record more views there, or fix terms (--model)"
         )
+    if result.holdout is None or not np.isfinite(result.holdout.rms_px):
+        warnings.append("hold-out check failed: OpenCV could not calibrate with views left out, so the model "
+                        "is not checked; record more views")
     if spread.max() > tolerance_px:
         at = grid[int(np.argmax(spread))]
         warnings.append(

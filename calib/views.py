@@ -189,7 +189,8 @@ def select_views(
     # 2. blur relative to the board's own squares
     pool = []
     for c in candidates:
-        if max_blur > 0 and not c.blur <= max_blur:
+        too_soft = not np.isfinite(c.edge_width_px) or (np.isfinite(c.square_px) and c.blur > max_blur)
+        if max_blur > 0 and too_soft:
             dropped.append(Dropped(c.label, c.frame, f"blurred (edges {c.edge_width_px:.1f} px wide, "
                                                      f"{c.blur:.2f} of a {c.square_px:.0f} px square > {max_blur:g})"))
         else:
