@@ -32,10 +32,9 @@ from calib.calibrate import CalibrationOptions, CalibrationResult, calibrate_vie
 from calib.camera_io import camera_to_dict, write_camera
 from calib.detect import BoardDetector
 from calib.frames import open_footage
-from calib.plots import save_calibration_plot
 from calib.checks import check_detection
 from calib.diagnostics import Diagnostics, diagnose
-from calib.plots import save_coverage_plot
+from calib.plots import save_calibration_plot, save_coverage_plot
 from calib.views import MAX_BLUR, Candidate, Dropped, coverage_fraction, make_candidate, select_views
 from capture.io.atomic import write_json
 from capture.io.errors import CaptureError
@@ -180,6 +179,9 @@ def run_calibrate(settings: CalibrateSettings) -> CalibrateOutputs:
     provenance = (f"capture calibrate of {settings.input.name} ({footage.kind}, {w}x{h}) with "
                   f"{board.text()} on {_dt.date.today().isoformat()}")
     options = settings.options()
+    if settings.progress:
+        print(f"calibrating {len(chosen)} views; hold-out check of {len(options.candidates())} lens model(s)...",
+              file=sys.stderr, flush=True)
     result = calibrate_views(
         [c.detection.object_points for c in chosen], [c.detection.image_points for c in chosen],
         [c.label for c in chosen], footage.image_size, options, provenance,
