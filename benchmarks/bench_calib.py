@@ -42,6 +42,7 @@ from calib.camera_io import read_camera  # noqa: E402
 from calib.pipeline import CalibrateSettings, run_calibrate  # noqa: E402
 from calib.uncertainty import pixel_grid, projection_difference  # noqa: E402
 from capture.io.atomic import write_text  # noqa: E402
+from capture.io.errors import CaptureError  # noqa: E402
 from tests.calib_synth import Renderer, operator_poses, write_images  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -159,10 +160,14 @@ def run_case(case: Case, renderer: Renderer | None = None, spec: str = SPEC, K_t
         t1 = time.perf_counter()
         plain, plain_views = plain_opencv(images, spec, size)
         t2 = time.perf_counter()
-        out = run_calibrate(CalibrateSettings(input=inp, board=spec, out=folder / "cam.json", progress=False))
+        try:
+            out = run_calibrate(CalibrateSettings(input=inp, board=spec, out=folder / "cam.json", progress=False))
+            ours = read_camera(out.camera)
+            report = json.loads(out.report.read_text())
+        except CaptureError as exc:  # a refusal is recorded, not hidden
+            ours, report = None, {"num_views": 0, "model": "refused", "dropped": [], "warnings": [str(exc)],
+                                  "uncertainty": {"max_px": float("inf")}, "holdout": {"spread_max_px": float("inf")}}
         t3 = time.perf_counter()
-        ours = read_camera(out.camera)
-        report = json.loads(out.report.read_text())
     ours_max, ours_mean = model_error(truth, ours)
     plain_max, plain_mean = model_error(truth, plain)
     return {
@@ -233,10 +238,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--table", type=Path, help="only print the table of a results JSON written before")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
+    ap.add_argument("--lenses", default="weak,strong")
     ap.add_argument("--views", default=",".join(map(str, VIEWS)))
     args = ap.parse_args(argv)
     for c in [c for c in CONDITIONS if c not in args.conditions.split(",")]:
         del CONDITIONS[c]
+    lenses = args.lenses.split(",")
     VIEWS_SEL = tuple(int(v) for v in args.views.split(","))
     if args.table:
         res = json.loads(args.table.read_text())
@@ -256,7 +263,7 @@ def main(argv: list[str] | None = None) -> dict:
             _print_row(r)
     else:
         renderers = {lens: Renderer(SPEC, K, d, SIZE) for lens, d in LENSES.items()}
-        for case in cases(args.quick, args.seeds, VIEWS_SEL):
+        for case in [c for c in cases(args.quick, args.seeds, VIEWS_SEL) if c.lens in lenses]:
             r = run_case(case, renderers[case.lens])
             rows.append(r)
             _print_row(r)

@@ -42,7 +42,7 @@ class CalibrationOptions:
     fix_k3: bool = False  # restrict the candidates to k1, k2 (+p)
     zero_tangent: bool = False  # restrict the candidates to no p1, p2
     rational: bool = False  # restrict the candidates to the rational model (k1..k6)
-    min_views: int = 6
+    min_views: int = 4
     outlier_factor: float = 3.0  # 0 disables rejection
     outlier_floor_px: float = 1.0  # views below this RMS are never outliers
     max_rounds: int = 3

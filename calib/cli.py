@@ -24,7 +24,8 @@ def calibrate_command(
     max_views: Annotated[int, typer.Option(help="Use at most this many views (chosen for coverage and tilt).")] = 40,
     max_frames: Annotated[int, typer.Option(
         help="Examine at most this many evenly spaced frames of a video (or images of a folder).")] = 300,
-    min_views: Annotated[int, typer.Option(help="Fail unless at least this many usable views remain.")] = 6,
+    min_views: Annotated[int, typer.Option(
+        help="Fail unless at least this many usable views remain (fewer than 6 get warnings).")] = 4,
     min_corners: Annotated[int, typer.Option(help="Ignore ChArUco views with fewer detected corners.")] = 6,
     max_blur: Annotated[float, typer.Option(
         help="Drop views whose board edges are wider than this fraction of the board's square size in "

@@ -10,6 +10,8 @@ pixels covering the whole image (:mod:`calib.uncertainty`):
 
 It warns (and ``--strict`` fails) when the model extrapolates or is not determined:
 
+- fewer than 6 views were used;
+
 - an image corner is farther than ``corner_gap_fraction`` (8 %) of the image diagonal from every
   used board corner: the lens model there is extrapolated, not measured;
 - the predicted uncertainty exceeds ``tolerance_px / 2`` somewhere (so 2 sigma exceeds the
@@ -103,6 +105,9 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
             + (f"; distortion term(s) {', '.join(loose)} not determined" if loose else "")
             + "; record more views there, or fix terms (--model)"
         )
+    if len(result.views) < 6:
+        warnings.append(f"only {len(result.views)} views: too few to pin the lens model and to check it by "
+                        "leaving views out; record at least 6, better 15-40, over the whole image")
     if result.holdout is None or not np.isfinite(result.holdout.rms_px):
         warnings.append("hold-out check failed: OpenCV could not calibrate with views left out, so the model "
                         "is not checked; record more views")

@@ -51,7 +51,7 @@ class CalibrateSettings:
     out: Path = Path("camera.json")
     max_views: int = 40
     max_candidates: int = 300
-    min_views: int = 6
+    min_views: int = 4
     min_corners: int = 6
     max_blur: float = MAX_BLUR
     duplicate_px: float | None = None

@@ -289,7 +289,7 @@ def test_error_too_few_views(charuco, tmp_path, capsys):
     write_images(tmp_path / "few", charuco[2][:3])
     code, _, err = run(["calibrate", str(tmp_path / "few"), "--board", CHARUCO_SPEC, "--out",
                         str(tmp_path / "c.json"), "--no-progress"], capsys)
-    assert_one_line_error(code, err, "too few usable views: found 3, need at least 6")
+    assert_one_line_error(code, err, "too few usable views: found 3, need at least 4")
 
 
 def test_error_wrong_board_gives_no_board(charuco_folder, tmp_path, capsys):
