@@ -21,7 +21,9 @@ def calibrate_command(
     out: Annotated[Path, typer.Option(
         "--out", help="Camera file to write: .json (capture format) or .yaml/.yml/.xml (OpenCV). "
         "<stem>.report.json and <stem>.report.png are written beside it.")] = Path("camera.json"),
-    max_views: Annotated[int, typer.Option(help="Use at most this many views (chosen for coverage and tilt).")] = 40,
+    max_views: Annotated[int, typer.Option(
+        help="Use at most this many views (bounds the cost; over it, distinct views chosen for coverage and "
+        "tilt come first, near-duplicates last).")] = 60,
     max_frames: Annotated[int, typer.Option(
         help="Examine at most this many evenly spaced frames of a video (or images of a folder).")] = 300,
     min_views: Annotated[int, typer.Option(

@@ -49,7 +49,7 @@ class CalibrateSettings:
     input: Path
     board: str
     out: Path = Path("camera.json")
-    max_views: int = 40
+    max_views: int = 60
     max_candidates: int = 300
     min_views: int = 4
     min_corners: int = 6

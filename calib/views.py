@@ -172,7 +172,7 @@ def _motion(a: Candidate, b: Candidate) -> float:
 def select_views(
     candidates: list[Candidate],
     image_size: tuple[int, int],
-    max_views: int = 40,
+    max_views: int = 60,
     max_blur: float = MAX_BLUR,
     duplicate_px: float | None = None,
 ) -> tuple[list[Candidate], list[Dropped]]:
