@@ -151,7 +151,7 @@ def test_calibrate_charuco_folder_end_to_end(charuco_folder, tmp_path, capsys):
     assert set(report["model_holdout_rms_px"]) == {"k1-k2", "k1-k2+p", "k1-k3+p", "k1-k6+p"}
     assert report["holdout"]["rms_px"] == report["model_holdout_rms_px"][model.name] < 0.5
     assert report["dropped"] == []  # 16 clean, distinct views: none is unusable
-    assert report["settings"]["board"] == CHARUCO_SPEC and report["settings"]["max_views"] == 40
+    assert report["settings"]["board"] == CHARUCO_SPEC and report["settings"]["max_views"] == 60
     png = tmp_path / "cam" / "camera.report.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and cv2.imread(str(png)).shape[1] > 800
     assert "RMS" in stdout and "fx" in stdout
