@@ -2,8 +2,8 @@
 
 Pure computation on corner lists (no files, no video). :func:`calibrate_views`:
 
-1. **First solve** with OpenCV's default model (k1, k2, p1, p2, k3; or the only model allowed by the
-   flags). Views whose RMS reprojection error is above ``outlier_factor`` times the median view RMS
+1. **First solve** with OpenCV's default model (k1, k2, p1, p2, k3; or the richest one the flags
+   allow, :func:`base_model`). Views whose RMS reprojection error is above ``outlier_factor`` times the median view RMS
    *and* above ``outlier_floor_px`` (1 px: a clean view is far below, a mis-detected one far above)
    are rejected and the solve repeated, up to ``max_rounds`` times, never below ``min_views``.
 2. **Model choice** (``model="auto"``): every candidate model (:mod:`calib.models`) is scored by the
@@ -141,7 +141,7 @@ def calibrate_views(
     img = [np.ascontiguousarray(p, np.float32).reshape(-1, 2) for p in image_points]
 
     # 1. first solve and outlier views
-    first = OPENCV_DEFAULT if OPENCV_DEFAULT in candidates else candidates[0]
+    first = base_model(candidates)
     active = list(range(len(labels)))
     rejected: list[ViewError] = []
     rounds = 0
@@ -188,6 +188,15 @@ def calibrate_views(
     views = [ViewError(labels[i], float(s.per_view[k]), len(img[i])) for k, i in enumerate(active)]
     return CalibrationResult(camera, s.rms, views, rejected, std, model, scores, checks[model.name],
                              s.rvecs, s.tvecs, rounds, obj_a, img_a)
+
+
+def base_model(candidates: list[DistortionModel]) -> DistortionModel:
+    """OpenCV's default model, or the richest non-rational candidate the flags allow (the rational one
+    only when nothing else is allowed): what plain OpenCV would fit with the same flags."""
+    if OPENCV_DEFAULT in candidates:
+        return OPENCV_DEFAULT
+    plain = [m for m in candidates if m.radial != 6] or candidates
+    return max(plain, key=lambda m: m.num_params)
 
 
 def choose_model(models: list[DistortionModel], checks: dict[str, HoldoutResult], base: DistortionModel,

@@ -75,7 +75,6 @@ def save_coverage_plot(path: str | os.PathLike, diag, view_points: list[np.ndarr
     import matplotlib
 
     matplotlib.use("Agg", force=False)
-    from matplotlib.colors import LogNorm
     from matplotlib.figure import Figure
 
     w, h = diag.image_size
@@ -84,12 +83,13 @@ def save_coverage_plot(path: str | os.PathLike, diag, view_points: list[np.ndarr
     axes = fig.subplots(1, 3)
     counts = diag.coverage.counts.astype(float)
     shown = np.where(counts > 0, counts, np.nan)
-    im = axes[0].imshow(shown, extent=(-0.5, w - 0.5, h - 0.5, -0.5), cmap="inferno_r",
-                        norm=LogNorm(vmin=1, vmax=max(2.0, float(counts.max()))), interpolation="nearest")
+    im = axes[0].imshow(shown, extent=(-0.5, w - 0.5, h - 0.5, -0.5), cmap="inferno_r", vmin=0,
+                        vmax=max(2.0, float(counts.max())), interpolation="nearest")
     fig.colorbar(im, ax=axes[0], shrink=0.8, label="used corners per cell")
-    gaps = ", ".join(f"{k} {v:.0f}" for k, v in diag.coverage.corner_gaps_px.items())
+    gaps = ", ".join(f"{v:.0f}" for v in diag.coverage.corner_gaps_px.values())
     axes[0].set_title(f"coverage: {1 - diag.coverage.uncovered_fraction:.0%} of the image within "
-                      f"{diag.coverage.reach_px:.0f} px of a corner\nimage-corner gaps (px): {gaps}", fontsize=9)
+                      f"{diag.coverage.reach_px:.0f} px of a corner\nimage-corner gaps TL, TR, BL, BR: {gaps} px",
+                      fontsize=9)
     vmax = max(diag.tolerance_px, float(diag.uncertainty_px.max()), float(diag.spread_px.max()))
     for ax, values, name in ((axes[1], diag.uncertainty_px, "predicted uncertainty (1 sigma)"),
                              (axes[2], diag.spread_px, "hold-out spread (max over folds)")):

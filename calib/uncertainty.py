@@ -176,7 +176,7 @@ class Coverage:
     reach_px: float
 
 
-def coverage(points: list[np.ndarray], image_size: tuple[int, int], cols: int = 32,
+def coverage(points: list[np.ndarray], image_size: tuple[int, int], cols: int = 16,
              reach_fraction: float = 0.05) -> Coverage:
     """Corner density per cell and gaps; ``reach_fraction`` of the image diagonal counts as covered."""
     from scipy.spatial import cKDTree
