@@ -145,10 +145,12 @@ def run_take(cfg: RunConfig) -> dict:
             fit_dir = fit_stage(inputs, track, out, log=log, progress=cfg.progress)
             frames = fit_frames(fit_dir)
             stage = "export"
+            options = export_options(cfg)
             ctx = ExportContext(faces=np.asarray(inputs.actor.template.faces), fps=info.fps,
                                 image_size=(info.width, info.height), camera=cam, frame_count=len(frames),
-                                options=ExportOptions(), source=f"capture run {Path(cfg.video).name}, "
-                                                                f"actor {inputs.actor.name}")
+                                options=options, source=f"capture run {Path(cfg.video).name}, "
+                                                        f"actor {inputs.actor.name}",
+                                rig=face_rig(inputs.actor, cfg.formats))
             dets = {int(i): Detection(track.points[j], None if track.confidence is None else track.confidence[j],
                                       bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
 
@@ -157,7 +159,7 @@ def run_take(cfg: RunConfig) -> dict:
                     yield from reader.frames(frames)
 
             key = {"fit": fits_key(out, inputs, track), "formats": list(cfg.formats), "fps": info.fps,
-                   "video": inputs.video_id, "options": ExportOptions().__dict__}
+                   "video": inputs.video_id, "options": options.__dict__}
             export_stage(fit_dir, ctx, cfg.formats, key, out, images=images, detections=dets, log=log,
                          progress=cfg.progress)
         except KeyboardInterrupt:
@@ -187,6 +189,23 @@ def run_take(cfg: RunConfig) -> dict:
     check_complete(requested, frames)
     write_run_json(out, inputs.video_id, label, settings, fingerprints, "done")
     return report
+
+
+def export_options(cfg) -> "ExportOptions":
+    """The exporters' options of a run (the overlay's layers from ``--overlay``)."""
+    from capture.export import ExportOptions
+
+    layers = getattr(cfg, "overlay", None)
+    return ExportOptions() if layers is None else ExportOptions(overlay_layers=tuple(layers))
+
+
+def face_rig(actor, formats):
+    """The actor as a blend-shape rig when ``curves`` is exported (None otherwise)."""
+    if "curves" not in formats:
+        return None
+    from capture.export.rig import FaceRig
+
+    return FaceRig.from_actor(actor)
 
 
 def fits_key(out: Path, inputs, track) -> str:
