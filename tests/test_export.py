@@ -106,7 +106,8 @@ def temp_files(directory: Path) -> list[Path]:
 
 def test_parse_formats():
     assert parse_formats("obj, USD,npz,obj") == ("obj", "usd", "npz")
-    assert set(EXPORTERS) == {"obj", "ply", "usd", "npz", "overlay"}
+    assert set(EXPORTERS) == {"obj", "ply", "usd", "npz", "overlay", "curves"}
+    assert parse_formats("curves,obj") == ("usd", "curves", "obj")   # the rig lives in take.usdc
     with pytest.raises(CaptureError) as err:
         parse_formats("obj,fbx")
     msg = str(err.value)
