@@ -115,6 +115,8 @@ class ExportContext:
         source: one line saying where the take came from (written into file headers).
         rig: the actor as a blend-shape rig (:class:`capture.export.rig.FaceRig`) for ``curves`` and the
             UsdSkel animation in ``take.usdc``; None when neither is exported.
+        features: the template's feature lines for the overlay's contours
+            (:class:`capture.export.features.FaceFeatures`); None: the boundary loops of ``faces`` only.
     """
 
     faces: np.ndarray
@@ -125,6 +127,7 @@ class ExportContext:
     options: ExportOptions = field(default_factory=ExportOptions)
     source: str = ""
     rig: Any = None
+    features: Any = None
 
     def __post_init__(self) -> None:
         faces = np.asarray(self.faces)
