@@ -76,7 +76,7 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
     from capture.actor.package import WEIGHTS, load_actor
     from capture.export import ExportContext, ExportOptions
     from capture.fit.take import WindowedFit, fit_meshes
-    from capture.run.take import base_report, face_rig, finish_report
+    from capture.run.take import base_report, finish_report, rig_and_features
     from capture.io.video import video_identity
 
     t_start = time.perf_counter()
@@ -115,7 +115,7 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
             ctx = ExportContext(faces=np.asarray(actor.template.faces), fps=cfg.fps, image_size=(1, 1), camera=None,
                                 frame_count=len(frames), options=ExportOptions(),
                                 source=f"capture fit3d {Path(cfg.meshes).name}, actor {actor.name}",
-                                rig=face_rig(actor, cfg.formats))
+                                **rig_and_features(actor, cfg.formats))
             export_stage(fdir, ctx, cfg.formats, {"fit": digest(key), "formats": list(cfg.formats), "fps": cfg.fps,
                                                   "options": ExportOptions().__dict__},
                          out, log=log, progress=cfg.progress)

@@ -150,7 +150,7 @@ def run_take(cfg: RunConfig) -> dict:
                                 image_size=(info.width, info.height), camera=cam, frame_count=len(frames),
                                 options=options, source=f"capture run {Path(cfg.video).name}, "
                                                         f"actor {inputs.actor.name}",
-                                rig=face_rig(inputs.actor, cfg.formats))
+                                **rig_and_features(inputs.actor, cfg.formats))
             dets = {int(i): Detection(track.points[j], None if track.confidence is None else track.confidence[j],
                                       bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
 
@@ -199,13 +199,20 @@ def export_options(cfg) -> "ExportOptions":
     return ExportOptions() if layers is None else ExportOptions(overlay_layers=tuple(layers))
 
 
-def face_rig(actor, formats):
-    """The actor as a blend-shape rig when ``curves`` is exported (None otherwise)."""
-    if "curves" not in formats:
-        return None
+def rig_and_features(actor, formats) -> dict:
+    """``ExportContext`` fields from the actor: its blend-shape rig when ``curves`` is exported, the
+    template's feature lines (lids, lips, brows) when the overlay is."""
+    if "curves" not in formats and "overlay" not in formats:
+        return {}
+    from capture.export.features import face_features
     from capture.export.rig import FaceRig
 
-    return FaceRig.from_actor(actor)
+    rig = FaceRig.from_actor(actor)
+    out = {"rig": rig} if "curves" in formats else {}
+    if "overlay" in formats:
+        out["features"] = face_features(np.asarray(actor.template.faces), np.asarray(actor.template.vertices),
+                                        rig.expressions, rig.names)
+    return out
 
 
 def fits_key(out: Path, inputs, track) -> str:
