@@ -186,6 +186,8 @@ def run_take(cfg: RunConfig) -> dict:
                   "all_landmarks": error_stats([r["reprojection_rms_all_px"] for r in rows])},
         "skipped_frames": skipped, "per_frame": rows, "notes": inputs.notes})
     finish_report(report, rows, "reprojection_rms_px", out)
+    html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
+                video=Path(cfg.video), camera=cam, image_size=(info.width, info.height))
     check_complete(requested, frames)
     write_run_json(out, inputs.video_id, label, settings, fingerprints, "done")
     return report
@@ -215,6 +217,31 @@ def rig_and_features(actor, formats) -> dict:
     return out
 
 
+def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict], error_key: str, unit: str,
+                fps: float, detections: dict | None = None, video: Path | None = None, camera=None,
+                image_size: tuple[int, int] | None = None) -> Path:
+    """``OUT/report.html`` (:mod:`capture.export.report_html`): the take's plots and its worst frames."""
+    from capture.export.features import face_features
+    from capture.export.overlay_draw import FrameRenderer, Topology
+    from capture.export.report_html import take_series, thumbnails, worst_frames, write_report_html
+    from capture.export.rig import FaceRig
+
+    rig = FaceRig.from_actor(actor)
+    errors = {int(r["frame"]): r.get(error_key) for r in rows}
+    series = take_series(iter_fits(fit_dir), fps, rig.names, errors, unit, detections)
+    thumbs = []
+    if video is not None and camera is not None and image_size is not None:
+        worst = worst_frames(series)
+        faces = np.asarray(actor.template.faces)
+        feats = face_features(faces, np.asarray(actor.template.vertices), rig.expressions, rig.names)
+        renderer = FrameRenderer(Topology.of(faces, feats), camera, image_size, fps,
+                                 ("mesh", "contours", "landmarks"))   # the caption says frame and error
+        want = set(worst)
+        fits = {int(f.frame): f for f in iter_fits(fit_dir) if int(f.frame) in want}
+        thumbs = thumbnails(video, worst, fits, detections or {}, renderer)
+    return write_report_html(out, report, series, thumbs)
+
+
 def fits_key(out: Path, inputs, track) -> str:
     from capture.run.stages import fit_key
 
@@ -238,6 +265,6 @@ def finish_report(report: dict, rows: list[dict], error_key: str, out: Path) -> 
     mesh_files = [f for f in files if f.startswith("meshes/")]
     others = [f for f in files if not f.startswith("meshes/")]
     report["outputs"] = ([f"meshes/ ({len(mesh_files)} files)"] if mesh_files else []) + others + \
-        ["report.json"]
+        ["report.json", "report.html"]
     report["output_files"] = files
     write_report(out, report)
