@@ -339,3 +339,40 @@ def write_report_html(out_dir: Path, report: dict, series: TakeSeries, thumbs: l
     from capture.io.atomic import write_text
 
     return write_text(Path(out_dir) / REPORT_HTML, render_html(report, series, figures(series), thumbs))
+
+
+# -------------------------------------------------------------------------------------- a whole shoot
+def shoot_html(report: dict, out_dir: Path) -> str:
+    """The shoot-level page of ``capture batch`` (``batch_report.html``): the totals and one row per take,
+    linking each take's ``report.html`` (relative links, so the folder can be moved or served as it is)."""
+    out_dir = Path(out_dir)
+    tot = report.get("totals", {})
+    head = ("take", "status", "frames", "error mean px", "median", "max", "time", "")
+    rows = []
+    for r in report.get("takes", []):
+        take_dir = Path(str(r.get("out", "")))
+        page = take_dir / REPORT_HTML
+        try:
+            rel = page.resolve().relative_to(out_dir.resolve()).as_posix()
+        except ValueError:
+            rel = page.resolve().as_uri()
+        link = f"<a href='{html.escape(rel)}'>report</a>" if page.is_file() else "<span class=muted>no report</span>"
+        frames = "-" if r.get("frames_requested") is None else f"{r.get('frames_fitted')}/{r.get('frames_requested')}"
+        status = html.escape(str(r.get("status", "")))
+        if r.get("status") == "failed":
+            status = f"<span class=flag>failed</span> {html.escape(str(r.get('error') or ''))}"
+        secs = r.get("seconds")
+        rows.append([html.escape(str(r.get("take", ""))), status, frames, _fmt(r.get("reprojection_mean_px")),
+                     _fmt(r.get("reprojection_median_px")), _fmt(r.get("reprojection_max_px")),
+                     "-" if secs is None else f"{float(secs):.0f} s", link])
+    name = html.escape(str(report.get("name", "shoot")))
+    summary = (f"{tot.get('takes', len(rows))} takes: {tot.get('done', 0)} done, {tot.get('already_done', 0)} already "
+               f"done, {tot.get('failed', 0)} failed; {tot.get('frames_fitted', 0)} frames fitted")
+    return "\n".join([
+        f"<!doctype html><html lang=en><head><meta charset=utf-8><title>capture batch: {name}</title>"
+        f"<style>{_CSS}</style></head><body><h1>capture batch: {name}</h1>",
+        f"<p>{html.escape(summary)}. <span class=muted>Shoot file {html.escape(str(report.get('shoot', '')))}; "
+        f"batch_report.json and batch_summary.csv hold the same rows.</span></p>",
+        "<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>"
+        + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>" for row in rows) + "</table>",
+        "</body></html>"])
