@@ -83,9 +83,13 @@ def test_brow_lines_follow_the_brow_shapes():
     brow = v[:, 1] >= 8                                         # a band across the top moves with the "brows"
     move[0, brow, 1] = 1.0
     lines = brow_lines(v, move, ["browInnerUp_L", "mouthSmile_L"], bins=3)
-    assert len(lines) == 2 and all(brow[p].all() for p in lines)
-    assert v[lines[0], 0].max() < v[lines[1], 0].min()           # one line per side, each ordered along x
-    assert all((np.diff(v[p, 0]) > 0).all() for p in lines)
+    assert len(lines) == 2
+    for ln in lines:   # every point is a convex combination of brow vertices
+        assert brow[ln.indices[ln.weights > 0]].all()
+        np.testing.assert_allclose(ln.weights.sum(1), 1.0)
+    pts = [ln.points(v) for ln in lines]
+    assert pts[0][:, 0].max() < pts[1][:, 0].min()              # one line per side, each ordered along x
+    assert all((np.diff(p[:, 0]) > 0).all() for p in pts)
     assert brow_lines(v, move, ["jawOpen", "mouthSmile_L"]) == []
 
 

@@ -7,9 +7,10 @@ All lines are vertex-index paths on the actor's template, so they follow the fit
   *openings*: on a face mask the eye openings (the lid margins) and the mouth opening (the inner lip line).
 * **Brows** (from the actor's named expression shapes, where it has them): the vertices that the
   ``brow*`` shapes move most (more than half the largest brow displacement), split into the actor's
-  left and right half at the template's median x, and on each side the vertex nearest the
-  displacement-weighted centre of each of ``bins`` slices along x, in order: a line along the brow.
-  An actor without brow shapes has no brow lines.
+  left and right half at the template's median x, and on each side one point per slice along x (of
+  ``bins``): the displacement-weighted mean of the slice's most-moved vertices, kept as fixed vertex
+  weights so the line follows the mesh: a smooth line along the brow. An actor without brow shapes
+  has no brow lines.
 
 Template frame (the actor's): x the actor's left, y up, z out of the face.
 """
@@ -23,15 +24,11 @@ import numpy as np
 
 @dataclass(frozen=True)
 class FaceFeatures:
-    """Vertex-index lines: ``border`` and ``openings`` closed loops, ``brows`` open polylines."""
+    """``border`` and ``openings``: closed loops of vertex indices; ``brows``: :class:`WeightedLine` s."""
 
     border: list[np.ndarray] = field(default_factory=list)
     openings: list[np.ndarray] = field(default_factory=list)
-    brows: list[np.ndarray] = field(default_factory=list)
-
-    def lines(self) -> list[tuple[np.ndarray, bool]]:
-        """Every feature line (openings and brows) as ``(vertex indices, closed)``."""
-        return [(p, True) for p in self.openings] + [(p, False) for p in self.brows]
+    brows: list = field(default_factory=list)
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
@@ -69,9 +66,12 @@ def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
     return loops
 
 
-def brow_lines(vertices: np.ndarray, expressions: np.ndarray, names, bins: int = 10,
-               threshold: float = 0.5) -> list[np.ndarray]:
+def brow_lines(vertices: np.ndarray, expressions: np.ndarray, names, bins: int = 10, threshold: float = 0.5,
+               per_point: int = 8) -> list["WeightedLine"]:
     """The actor's left and right brow lines from its ``brow*`` shapes (see the module docstring).
+
+    Each point of a line is a fixed convex combination of up to ``per_point`` vertices of one slice
+    (weighted by how far the brow shapes move them), so the line is smooth and follows the mesh.
 
     Args: vertices ``(V, 3)`` template; expressions ``(E, V, 3)`` offsets; names ``E`` shape names.
     """
@@ -91,18 +91,36 @@ def brow_lines(vertices: np.ndarray, expressions: np.ndarray, names, bins: int =
             continue
         x = v[sel, 0]
         edges = np.linspace(x.min(), x.max(), bins + 1)
-        path = []
+        ids, wts = [], []
         for lo, hi in zip(edges[:-1], edges[1:]):
             s = sel[(x >= lo) & (x <= hi)]
             if len(s) == 0:
                 continue
-            centre = (v[s] * m[s, None]).sum(0) / m[s].sum()
-            best = int(s[np.argmin(np.linalg.norm(v[s] - centre, axis=1))])
-            if not path or path[-1] != best:
-                path.append(best)
-        if len(path) >= 2:
-            lines.append(np.asarray(path, np.int64))
+            s = s[np.argsort(-m[s], kind="stable")][:per_point]
+            row_i = np.zeros(per_point, np.int64)
+            row_w = np.zeros(per_point)
+            row_i[:len(s)], row_w[:len(s)] = s, m[s] / m[s].sum()
+            ids.append(row_i)
+            wts.append(row_w)
+        if len(ids) >= 2:
+            lines.append(WeightedLine(np.stack(ids), np.stack(wts)))
     return lines
+
+
+@dataclass(frozen=True)
+class WeightedLine:
+    """An open line whose points are convex combinations of vertices: ``point_p = sum_k w[p, k] v[i[p, k]]``."""
+
+    indices: np.ndarray   # (P, K) vertex indices
+    weights: np.ndarray   # (P, K) non-negative, rows sum to 1
+
+    def points(self, vertices: np.ndarray, smooth: int = 2) -> np.ndarray:
+        """``(P, 3)`` the line's points on a mesh ``vertices (V, 3)``, smoothed ``smooth`` times with
+        weights (1/4, 1/2, 1/4) along the line (end points kept)."""
+        p = np.einsum("pk,pkc->pc", self.weights, np.asarray(vertices, np.float64)[self.indices])
+        for _ in range(smooth if len(p) > 2 else 0):
+            p[1:-1] = 0.25 * p[:-2] + 0.5 * p[1:-1] + 0.25 * p[2:]
+        return p
 
 
 def face_features(faces: np.ndarray, vertices: np.ndarray | None = None, expressions: np.ndarray | None = None,

@@ -11,7 +11,8 @@ Layers (``ExportOptions.overlay_layers``; every size scales with the frame heigh
 * ``wireframe``: the edges of the visible front-facing triangles, thin and translucent.
 * ``contours``, crisp: the occluding silhouette (edges between a triangle facing the camera and one
   facing away) and the template's border in yellow; the template's openings (lid margins, inner lip
-  line) and brow lines (:mod:`capture.export.features`) in magenta. Hidden parts are not drawn: an
+  line), the occluding rims of lids and lips (silhouette edges within :data:`OPENING_RINGS` triangle
+  rings of an opening) and the brow lines (:mod:`capture.export.features`) in magenta. Hidden parts are not drawn: an
   edge is drawn where it is no farther than the rendered surface (z-buffer) plus
   :data:`DEPTH_TOLERANCE_MM`.
 * ``landmarks``: each detected landmark as a small dot and its residual (detected -> fitted) as a
@@ -45,6 +46,7 @@ FEATURE_BGR = (255, 90, 255)      # magenta
 LOW_CONF_BGR = (150, 150, 150)
 DEPTH_TOLERANCE_MM = 4.0
 RESIDUAL_GAIN = 4.0
+OPENING_RINGS = 6                 # silhouette edges this close (triangle rings) to an opening are its rim
 CONFIDENT = 0.5
 _SHIFT = 4                        # sub-pixel drawing: coordinates * 2**4
 _ONE = 1 << _SHIFT
@@ -63,6 +65,7 @@ class Topology:
     face_edges: np.ndarray
     edge_faces: np.ndarray
     features: FaceFeatures
+    near_opening: np.ndarray     # (V,) bool: within OPENING_RINGS rings of an opening's loop (lid, lip rims)
 
     @classmethod
     def of(cls, faces: np.ndarray, features: FaceFeatures | None = None) -> "Topology":
@@ -81,8 +84,13 @@ class Topology:
         edge_faces[:, 0] = face_of[order[starts]]
         two = counts >= 2
         edge_faces[two, 1] = face_of[order[starts[two] + 1]]
-        return cls(f, edges, inverse.reshape(-1, 3), edge_faces,
-                   features if features is not None else face_features(f))
+        features = features if features is not None else face_features(f)
+        near = np.zeros(int(f.max()) + 1, bool)
+        for loop in features.openings:
+            near[loop] = True
+        for _ in range(OPENING_RINGS):   # grow by one ring of triangles
+            near[f[near[f].any(1)].ravel()] = True
+        return cls(f, edges, inverse.reshape(-1, 3), edge_faces, features, near)
 
 
 def project(vertices: np.ndarray, camera) -> np.ndarray:
@@ -210,16 +218,24 @@ class FrameRenderer:
             sil = (two & (fa != fb)) | (~two & fa)       # occluding contour, or the border seen from the front
             sel = np.flatnonzero(sil & ok_e)
             sel = sel[visible(mid2[sel], midz[sel])]
-            _segments(out, px, E[sel], SILHOUETTE_BGR, self.line)
-            for path, closed in self.topo.features.lines():
-                pairs = np.stack([path[:-1], path[1:]], 1)
-                if closed:
-                    pairs = np.vstack([pairs, [path[-1], path[0]]])
+            rim = self.topo.near_opening[E[sel]].any(1)  # the lids' and lips' own occluding rims: features
+            _segments(out, px, E[sel[~rim]], SILHOUETTE_BGR, self.line)
+            _segments(out, px, E[sel[rim]], FEATURE_BGR, self.line)
+            for loop in self.topo.features.openings:
+                pairs = np.stack([loop, np.roll(loop, -1)], 1)
                 pairs = pairs[ok_v[pairs].all(1)]
                 if len(pairs):
                     m2 = 0.5 * (px[pairs[:, 0]] + px[pairs[:, 1]])
                     mz = 0.5 * (v[pairs[:, 0], 2] + v[pairs[:, 1], 2])
                     _segments(out, px, pairs[visible(m2, mz)], FEATURE_BGR, self.line)
+            for brow in self.topo.features.brows:
+                p3 = brow.points(v)
+                if not (p3[:, 2] > 1e-3).all():
+                    continue
+                p2 = project(p3, self.camera)
+                pairs = np.stack([np.arange(len(p2) - 1), np.arange(1, len(p2))], 1)
+                keep = visible(0.5 * (p2[pairs[:, 0]] + p2[pairs[:, 1]]), 0.5 * (p3[pairs[:, 0], 2] + p3[pairs[:, 1], 2]))
+                _segments(out, p2, pairs[keep], FEATURE_BGR, self.line)
 
     # -- landmarks -------------------------------------------------------------------------------
     def _landmarks(self, out: np.ndarray, fit, detection) -> None:
@@ -298,7 +314,7 @@ class FrameRenderer:
         widths = [cv2.getTextSize(s, font, fs, th)[0][0] for s, _, _ in items]
         band_h = tht + base + 2 * pad
         x = pad
-        total = sum(widths) + pad * 3 * len(items) + (int(150 * self.u) if key else 0)
+        total = sum(widths) + pad * 3 * len(items) + (int(230 * max(self.u, 0.6)) if key else 0)
         band = out[0:band_h, 0:min(self.size[0], total + pad)]
         band[...] = (band * 0.35).astype(np.uint8)
         y = pad + tht
@@ -307,15 +323,15 @@ class FrameRenderer:
                 cv2.rectangle(out, (x - pad // 2, pad // 2), (x + wdt + pad // 2, band_h - pad // 2), bg, -1)
             cv2.putText(out, s, (x, y), font, fs, colour, th, cv2.LINE_AA)
             x += wdt + 3 * pad
-        if key:   # the residual colour key: three dots and the thresholds
+        if key:   # the residual colour key: dot, threshold; dot, middle; dot, threshold
             r = max(2, int(round(3 * self.u)))
-            for value, label in ((self.u, f"<{self.u:.1f}"), (3 * self.u, ""), (5 * self.u, f">{5 * self.u:.0f}px")):
+            for value, label in ((self.u, f"<{self.u:.2g}"), (3 * self.u, f"{3 * self.u:.2g}"),
+                                 (5 * self.u, f">{5 * self.u:.2g} px")):
                 c = tuple(float(v) for v in error_colour(np.array([value]), self.u, 5 * self.u)[0])
                 cv2.circle(out, (x + r, y - tht // 2), r, c, -1, cv2.LINE_AA)
                 x += 2 * r + max(2, pad // 2)
-                if label:
-                    cv2.putText(out, label, (x, y), font, 0.8 * fs, (230, 230, 230), th, cv2.LINE_AA)
-                    x += cv2.getTextSize(label, font, 0.8 * fs, th)[0][0] + pad
+                cv2.putText(out, label, (x, y), font, 0.8 * fs, (230, 230, 230), th, cv2.LINE_AA)
+                x += cv2.getTextSize(label, font, 0.8 * fs, th)[0][0] + pad
 
     def render(self, image: np.ndarray, fit, detection=None, vertices: np.ndarray | None = None) -> np.ndarray:
         out = np.array(image, dtype=np.uint8, copy=True)
