@@ -296,7 +296,7 @@ def retarget_run(cfg: RetargetConfig) -> dict:
                                     camera=camera, frame_count=len(src.frames), options=options,
                                     source=f"capture retarget {src.path.name} onto actor {b.name} ({part})")
                 export_stage(fdir, ctx, formats, {"fit": digest(key), "formats": list(formats), "fps": src.fps,
-                                                  "options": options.__dict__}, part_dir,
+                                                  "options": options.to_dict()}, part_dir,
                              images=images if "overlay" in formats else None, log=log, progress=cfg.progress)
                 log[-1]["stage"] = f"export {part}"
             except KeyboardInterrupt:

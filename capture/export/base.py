@@ -100,6 +100,10 @@ class ExportOptions:
         if not 0 <= self.overlay_crf <= 51:
             raise ValueError(f"overlay_crf must be in 0..51, got {self.overlay_crf}")
 
+    def to_dict(self) -> dict:
+        """Plain JSON data (tuples as lists): what an export's key and report record."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
+
 
 @dataclass
 class ExportContext:

@@ -99,7 +99,7 @@ class UsdTakeWriter:
             if getattr(ctx, "rig", None) is not None:   # --formats curves: the UsdSkel rig beside the mesh
                 from capture.export.usd_skel import SkelRigWriter
 
-                self._rig = SkelRigWriter(stage, ctx.rig, ctx.faces)
+                self._rig = SkelRigWriter(stage, ctx.rig, ctx.faces, CAMERA_TO_USD)
         except Exception:
             self._release()
             self._crate.discard()

@@ -15,7 +15,8 @@ Beside the baked mesh ``/Take/Face`` (:mod:`capture.export.usd`), the rig plays 
 
 Axes: the template (head) frame is y up (x the actor's left, z out of the face), USD's own convention,
 so rest points and offsets are written as they are; the head joint carries the head pose converted to
-the stage's axes, ``p_usd = CAMERA_TO_USD @ (head_R @ x + head_t)``: rotation ``CAMERA_TO_USD @ head_R``,
+the stage's axes, ``p_usd = CAMERA_TO_USD @ (head_R @ x + head_t)`` (the matrix is passed in by
+:mod:`capture.export.usd`, the one place that defines it): rotation ``CAMERA_TO_USD @ head_R``,
 translation ``CAMERA_TO_USD @ head_t``. The rig then lands on the baked mesh wherever the fit has no
 local detail (``/Take/Face`` stays the exact per-frame result).
 
@@ -29,7 +30,6 @@ from __future__ import annotations
 import numpy as np
 
 from capture.export.rig import JAW_SHAPE_NAMES, FaceRig, frame_base_weights, jaw_shapes, jaw_weights
-from capture.export.usd import CAMERA_TO_USD
 
 RIG_PRIM = "/Take/Rig"
 SKELETON = "Skeleton"
@@ -44,23 +44,26 @@ def _token(name: str) -> str:
     return out if out and not out[0].isdigit() else f"_{out}"
 
 
-def head_joint_transform(head_R: np.ndarray, head_t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The head joint's (quaternion ``(w, x, y, z)``, translation ``(3,)`` mm) on the stage's axes."""
+def head_joint_transform(head_R: np.ndarray, head_t: np.ndarray, to_stage: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The head joint's (quaternion ``(w, x, y, z)``, translation ``(3,)`` mm) on the stage's axes
+    (``to_stage``: the camera-to-stage rotation, :data:`capture.export.usd.CAMERA_TO_USD`)."""
     from scipy.spatial.transform import Rotation
 
-    R = CAMERA_TO_USD @ np.asarray(head_R, np.float64)
+    C = np.asarray(to_stage, np.float64)
+    R = C @ np.asarray(head_R, np.float64)
     x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return np.array([w, x, y, z]), CAMERA_TO_USD @ np.asarray(head_t, np.float64)
+    return np.array([w, x, y, z]), C @ np.asarray(head_t, np.float64)
 
 
 class SkelRigWriter:
     """Authors the rig on an open stage and adds one sample per frame (see the module docstring)."""
 
-    def __init__(self, stage, rig: FaceRig, faces: np.ndarray, root: str = RIG_PRIM):
+    def __init__(self, stage, rig: FaceRig, faces: np.ndarray, to_stage: np.ndarray, root: str = RIG_PRIM):
         from pxr import Gf, Sdf, UsdGeom, UsdSkel, Vt
 
         self._Gf, self._Vt, self._UsdGeom = Gf, Vt, UsdGeom
         self.rig = rig
+        self.to_stage = np.asarray(to_stage, np.float64)
         self.n_expr = len(rig.names)
         names = [_token(n) for n in rig.names] + list(JAW_SHAPE_NAMES)
         if len(set(names)) != len(names):
@@ -133,7 +136,7 @@ class SkelRigWriter:
             self._visible = visible
         if not visible:
             return
-        q, tr = head_joint_transform(fit.head_R, fit.head_t)
+        q, tr = head_joint_transform(fit.head_R, fit.head_t, self.to_stage)
         self._rotations.Set(Vt.QuatfArray([Gf.Quatf(float(q[0]), Gf.Vec3f(*(float(v) for v in q[1:])))]), t)
         self._translations.Set(Vt.Vec3fArray([Gf.Vec3f(*(float(v) for v in tr))]), t)
         self._weights.Set(Vt.FloatArray.FromNumpy(w.astype(np.float32)), t)

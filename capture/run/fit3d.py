@@ -117,7 +117,7 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
                                 source=f"capture fit3d {Path(cfg.meshes).name}, actor {actor.name}",
                                 **rig_and_features(actor, cfg.formats))
             export_stage(fdir, ctx, cfg.formats, {"fit": digest(key), "formats": list(cfg.formats), "fps": cfg.fps,
-                                                  "options": ExportOptions().__dict__},
+                                                  "options": ExportOptions().to_dict()},
                          out, log=log, progress=cfg.progress)
         except KeyboardInterrupt:
             raise Interrupted(f"interrupted during {stage}; finished work is kept in {out}: run the same "

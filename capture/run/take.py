@@ -159,7 +159,7 @@ def run_take(cfg: RunConfig) -> dict:
                     yield from reader.frames(frames)
 
             key = {"fit": fits_key(out, inputs, track), "formats": list(cfg.formats), "fps": info.fps,
-                   "video": inputs.video_id, "options": options.__dict__}
+                   "video": inputs.video_id, "options": options.to_dict()}
             export_stage(fit_dir, ctx, cfg.formats, key, out, images=images, detections=dets, log=log,
                          progress=cfg.progress)
         except KeyboardInterrupt:
