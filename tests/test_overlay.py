@@ -171,3 +171,20 @@ def test_header_flags_and_scaling():
     h360, h720, h2160 = band_height(360), band_height(720), band_height(2160)
     assert h360 >= 16                                            # readable at 360p
     assert 2.6 < h2160 / h720 < 3.4                              # scales with the frame height
+
+
+def test_overlay_option_parsing():
+    from capture.export import ExportOptions
+    from capture.io.errors import CaptureError
+    from capture.run.inputs import RunConfig, parse_overlay
+
+    assert parse_overlay(None) == ("mesh", "contours", "landmarks", "header")
+    assert parse_overlay("Wireframe, contours,wireframe") == ("wireframe", "contours")
+    assert parse_overlay("none") == ()
+    with pytest.raises(CaptureError, match="unknown overlay layer 'dots'.*known layers: mesh, wireframe"):
+        parse_overlay("mesh,dots")
+    with pytest.raises(ValueError):
+        ExportOptions(overlay_layers="mesh")
+    # kept in the run's settings (run.json / report.json) and in the export key as JSON data
+    assert RunConfig(video="v.mp4", actor="a", overlay=("mesh",)).to_dict()["overlay"] == ["mesh"]
+    assert ExportOptions(overlay_layers=("mesh",)).to_dict()["overlay_layers"] == ["mesh"]
