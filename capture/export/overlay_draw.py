@@ -208,9 +208,10 @@ class FrameRenderer:
             on[self.topo.face_edges[front].ravel()] = True
             eids = np.flatnonzero(on)
             eids = eids[ok_e[eids] & visible(mid2[eids], midz[eids])]
-            layer = out.copy()
-            _segments(layer, px, E[eids], WIRE_BGR, 1)
-            cv2.addWeighted(layer, WIRE_ALPHA, out, 1 - WIRE_ALPHA, 0, dst=out)
+            roi = out[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1]          # the face's box only (cheap at 4K)
+            layer = roi.copy()
+            _segments(layer, px - lo, E[eids], WIRE_BGR, 1)
+            roi[...] = cv2.addWeighted(layer, WIRE_ALPHA, roi, 1 - WIRE_ALPHA, 0)
         if "contours" in self.layers:
             fa = np.where(ef[:, 0] >= 0, front[ef[:, 0]], False)
             fb = np.where(ef[:, 1] >= 0, front[ef[:, 1]], False)
