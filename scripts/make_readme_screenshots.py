@@ -138,6 +138,13 @@ def main() -> None:
     sheet = np.vstack(parts)
     sheet = cv2.resize(sheet, (760, int(sheet.shape[0] * 760 / sheet.shape[1])), interpolation=cv2.INTER_AREA)
     cv2.imwrite(str(out / "report.png"), sheet, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    from PIL import Image
+
+    # a 256-colour palette keeps the report's picture small (the overlays keep full colour: a palette
+    # loses the few red pixels of the colour key)
+    Image.open(out / "report.png").convert("RGB").quantize(colors=256, method=Image.Quantize.FASTOCTREE,
+                                                           dither=Image.Dither.NONE).save(out / "report.png",
+                                                                                          optimize=True)
     for p in sorted(out.glob("*.png")):
         print(f"{p.relative_to(ROOT)}: {p.stat().st_size // 1024} KB")
 
