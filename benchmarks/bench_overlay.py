@@ -100,13 +100,13 @@ def baseline_draw(img, fit, det, faces, edges, face_edges, cam):
     return out
 
 
-def bench_size(size, frames, rig, features) -> dict:
+def bench_size(size, frames, rig, faces, features) -> dict:
     import av
 
     from capture.export.overlay_draw import FrameRenderer, Topology
 
     cam, data = take(size, frames, rig)
-    topo = Topology.of(rig_faces(), features)
+    topo = Topology.of(faces, features)
     res = {"size": f"{size[0]}x{size[1]}", "frames": frames}
     for name, layers in (("draw_default_ms", ("mesh", "contours", "landmarks", "header")),
                          ("draw_wireframe_ms", ("wireframe", "contours", "header"))):
@@ -137,13 +137,6 @@ def bench_size(size, frames, rig, features) -> dict:
     return res
 
 
-_FACES = None
-
-
-def rig_faces():
-    return _FACES
-
-
 def main(argv=None) -> dict:
     import os
 
@@ -163,14 +156,13 @@ def main(argv=None) -> dict:
     from capture.export.features import face_features
     from capture.export.rig import FaceRig
 
-    global _FACES
     actor = load_actor(str(DEMO))
     rig = FaceRig.from_actor(actor)
-    _FACES = np.asarray(actor.template.faces)
-    features = face_features(_FACES, np.asarray(actor.template.vertices), rig.expressions, rig.names)
+    faces = np.asarray(actor.template.faces)
+    features = face_features(faces, np.asarray(actor.template.vertices), rig.expressions, rig.names)
     sizes = ["640x360"] if args.quick else args.sizes.split(",")
     frames = 3 if args.quick else args.frames
-    rows = [bench_size(tuple(int(x) for x in s.split("x")), frames, rig, features) for s in sizes]
+    rows = [bench_size(tuple(int(x) for x in s.split("x")), frames, rig, faces, features) for s in sizes]
     load = os.getloadavg()
     print(f"overlay, ms per frame (one thread; load average {load[0]:.1f} on {os.cpu_count()} cores)")
     print(f"{'size':>10} {'draw default':>13} {'draw wireframe':>15} {'baseline draw':>14} {'encode':>8}")

@@ -11,7 +11,7 @@ import trimesh
 
 from calib.camera import Camera
 from capture.export.features import boundary_loops, brow_lines, face_features
-from capture.export.overlay_draw import (FEATURE_BGR, SILHOUETTE_BGR, FrameRenderer, Topology, error_colour,
+from capture.export.overlay_draw import (SILHOUETTE_BGR, FrameRenderer, Topology, error_colour,
                                          vertex_normals_fast)
 
 

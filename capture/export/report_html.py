@@ -323,7 +323,7 @@ def render_html(report: dict, s: TakeSeries, figs: list[tuple[str, str]], thumbs
     for t, png in figs:
         parts.append(f"<h2>{html.escape(t)}</h2><img alt='{html.escape(t)}' src='data:image/png;base64,{png}'>")
     if thumbs:
-        parts.append(f"<h2>Worst frames</h2><div class=thumbs>")
+        parts.append("<h2>Worst frames</h2><div class=thumbs>")
         err = dict(zip(s.frame.tolist(), s.error.tolist()))
         for i, png in thumbs:
             parts.append(f"<figure><img alt='frame {i}' src='data:image/png;base64,{png}'><figcaption>frame {i}: "

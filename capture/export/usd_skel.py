@@ -59,7 +59,7 @@ class SkelRigWriter:
     """Authors the rig on an open stage and adds one sample per frame (see the module docstring)."""
 
     def __init__(self, stage, rig: FaceRig, faces: np.ndarray, to_stage: np.ndarray, root: str = RIG_PRIM):
-        from pxr import Gf, Sdf, UsdGeom, UsdSkel, Vt
+        from pxr import Gf, UsdGeom, UsdSkel, Vt
 
         self._Gf, self._Vt, self._UsdGeom = Gf, Vt, UsdGeom
         self.rig = rig

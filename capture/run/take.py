@@ -115,7 +115,7 @@ def check_complete(requested: list[int], fitted: list[int]) -> None:
 def run_take(cfg: RunConfig) -> dict:
     """Run the whole take; returns the report (also written to ``OUT/report.json``)."""
     from capture.detector import LandmarkTrack
-    from capture.export import ExportContext, ExportOptions
+    from capture.export import ExportContext
     from calib.camera_io import camera_to_dict
     from capture.io.video import VideoReader
 
@@ -193,7 +193,7 @@ def run_take(cfg: RunConfig) -> dict:
     return report
 
 
-def export_options(cfg) -> "ExportOptions":
+def export_options(cfg):
     """The exporters' options of a run (the overlay's layers from ``--overlay``)."""
     from capture.export import ExportOptions
 
