@@ -125,3 +125,11 @@ def test_bench_calib_quick():
     (row,) = res["rows"]
     assert row["condition"] == "h264" and row["plain_views"] > 0 and row["ours_views"] > 0
     assert np.isfinite(row["ours_max_px"]) and np.isfinite(row["plain_max_px"])
+
+
+def test_bench_overlay_quick():
+    from benchmarks.bench_overlay import main
+
+    res = main(["--quick"])
+    row = res["rows"][0]
+    assert row["size"] == "640x360" and row["draw_default_ms"] > 0 and row["encode_ms"] > 0
