@@ -307,3 +307,94 @@ def test_shoot_file_mistakes_are_one_line_errors(tmp_path, monkeypatch):
     assert example.takes[2].config.camera.name == "cam_b.json" and example.takes[1].config.frames == "120:2400"
     assert example.takes[2].config.iterations == 800 and example.takes[0].config.iterations == 500
     assert main(["batch", str(tmp_path / "missing.toml")]) == 2
+
+
+# ------------------------------------------------------------------------------ a real Ray cluster
+CLUSTER_SHOOT = """
+[defaults]
+actor = "actors/tiny"
+iterations = 20
+window = 8
+formats = ["obj", "npz"]
+
+[[take]]
+name = "a"
+video = "takes/a/take.mp4"
+camera = "takes/a/camera.json"
+
+[[take]]
+name = "b"
+video = "takes/b/take.mp4"
+camera = "takes/b/camera.json"
+"""
+
+
+def _same_outputs(ref: Path, got: Path) -> None:
+    """Byte-identical meshes and equal parameter arrays (report.json and run.json hold timings and paths)."""
+    meshes = sorted(p.name for p in (ref / "meshes").glob("*.obj"))
+    assert meshes and meshes == sorted(p.name for p in (got / "meshes").glob("*.obj"))
+    for m in meshes:
+        assert (ref / "meshes" / m).read_bytes() == (got / "meshes" / m).read_bytes(), m
+    with np.load(ref / "params.npz") as a, np.load(got / "params.npz") as b:
+        assert sorted(a.files) == sorted(b.files)
+        for k in a.files:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+@pytest.mark.slow
+def test_a_shoot_on_a_two_node_cluster_survives_a_dead_node(shoot_dir, tmp_path):
+    """Two Ray nodes (separate GCS/raylet processes on 127.0.0.1, token authentication on, the token in
+    the driver's ~/.ray/auth_token only). ``capture batch --address`` joins without RAY_AUTH_MODE; the
+    worker node is killed while it runs a take: that take is retried on the head node and finishes,
+    and both takes' outputs are identical to ``capture run`` on each take."""
+    import subprocess
+    import sys
+    import time
+
+    from tests.ray_cluster import LocalCluster
+
+    shoot = _write(shoot_dir / "shoot_cluster.toml", CLUSTER_SHOOT)
+    with LocalCluster(nodes=2, cpus=1) as cluster:
+        env = cluster.driver_env()
+        # A driver without the token cannot join: one line naming the token, no log flood.
+        no_token = subprocess.run([sys.executable, "-m", "capture.cli", "batch", str(shoot), "--out",
+                                   str(tmp_path / "x"), "--address", cluster.address],
+                                  env={**env, "HOME": str(tmp_path)}, capture_output=True, text=True, timeout=300)
+        assert no_token.returncode == 2
+        lines = (no_token.stdout + no_token.stderr).strip().splitlines()
+        assert len(lines) == 1 and "token" in lines[0] and cluster.address in lines[0], lines
+
+        out = tmp_path / "runs"
+        driver = subprocess.Popen([sys.executable, "-m", "capture.cli", "batch", str(shoot), "--out", str(out),
+                                   "--address", cluster.address, "--no-progress"], env=env,
+                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        worker_node = cluster.node_ids[1][:8]
+        victim, deadline = None, time.monotonic() + 240
+        while victim is None and time.monotonic() < deadline and driver.poll() is None:
+            for name in ("a", "b"):
+                log = out / name / "batch_take.log"
+                if log.is_file() and f"Ray node {worker_node}" in log.read_text():
+                    victim = name
+            time.sleep(0.2)
+        assert victim is not None, "no take started on the worker node"
+        time.sleep(1.0)                                         # into the take's work
+        assert not (out / victim / "report.json").exists()      # still running
+        cluster.kill(1)
+        stdout, _ = driver.communicate(timeout=600)
+    assert driver.returncode == 0, stdout
+    report = json.loads((out / "batch_report.json").read_text())
+    assert report["ray"]["mode"] == "cluster" and report["ray"]["nodes"] == 2 and report["ray"]["auth"] == "token"
+    rows = {r["take"]: r for r in report["takes"]}
+    assert [rows[k]["status"] for k in ("a", "b")] == ["done", "done"]
+    assert rows[victim]["attempts"] == 2
+    state = json.loads((out / victim / "batch_take.json").read_text())
+    assert state["attempts"][0]["status"] == "failed" and "worker" in state["attempts"][0]["error"]
+    assert worker_node not in state["attempts"][1]["node"]     # the retry ran on the other node
+
+    for name in ("a", "b"):
+        take = shoot_dir / "takes" / name
+        ref = tmp_path / f"run_{name}"
+        assert main(["run", str(take / "take.mp4"), "--actor", str(shoot_dir / "actors" / "tiny"), "--camera",
+                     str(take / "camera.json"), "--out", str(ref), "--iterations", "20", "--window", "8",
+                     "--formats", "obj,npz", "--threads", "1", "--no-progress"]) == 0
+        _same_outputs(ref, out / name)
