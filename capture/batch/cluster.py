@@ -54,11 +54,13 @@ def worker_env(threads: int) -> dict[str, str]:
     * ``RAY_worker_niceness``: Ray starts its workers at niceness 15, so that any ordinary (niceness 0)
       process on the machine takes the CPU from them: with one competing 2-thread job on 2 cores a
       take ran 8x slower than alone (``capture run`` 2-3x). The workers run at this driver's own
-      niceness instead (``nice capture batch ...`` still makes them yield).
+      niceness instead (``nice capture batch ...`` still makes them yield), or at
+      ``RAY_worker_niceness`` when the driver's environment sets it (15: Ray's default).
     * OpenMP, MKL and OpenBLAS pools of ``threads`` threads that sleep rather than spin when idle.
     """
     n = str(max(1, int(threads)))
-    return {"RAY_worker_niceness": str(os.nice(0)), "OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n,
+    nice = os.environ.get("RAY_worker_niceness") or str(os.nice(0))
+    return {"RAY_worker_niceness": nice, "OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n,
             "OPENBLAS_NUM_THREADS": n, "OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0"}
 
 

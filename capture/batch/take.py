@@ -227,7 +227,7 @@ def guarded(cfg: RunConfig, name: str, attempt: int, threads: int, work: Callabl
     t0, c0 = time.perf_counter(), time.process_time()
     node = node_name()
     base = {"take": name, "attempt": attempt, "host": socket.gethostname(), "node": node, "pid": os.getpid(),
-            "threads": threads, "started": _now()}
+            "threads": threads, "niceness": os.nice(0), "started": _now()}
     problem = check_storage(cfg)
     if problem is not None:
         return {**base, "status": "failed", "retry": False, "seconds": time.perf_counter() - t0, "cpu_seconds": 0.0,
@@ -238,7 +238,7 @@ def guarded(cfg: RunConfig, name: str, attempt: int, threads: int, work: Callabl
     throttle = _Throttle(on_frames)
     with open(log_path, "a", encoding="utf-8") as log:
         log.write(f"--- {base['started']} {what} {name} attempt {attempt} on {node} (pid {base['pid']}, "
-                  f"{threads} thread(s), niceness {os.nice(0)}, python {platform.python_version()})\n")
+                  f"{threads} thread(s), niceness {base['niceness']}, python {platform.python_version()})\n")
         log.write(f"settings: {cfg.to_dict()}\n")
         log.flush()
         try:
