@@ -104,7 +104,7 @@ def base_env() -> dict:
     return env
 
 
-def scaling(shoot: Path, work: Path, rounds: int) -> None:
+def scaling(shoot: Path, work: Path, rounds: int) -> dict:
     from tests.ray_cluster import LocalCluster
 
     print("scaling: 1 node x 1 CPU vs 2 nodes x 1 CPU, through --address (alternating)", flush=True)
@@ -117,11 +117,13 @@ def scaling(shoot: Path, work: Path, rounds: int) -> None:
     per_min = {n: sum(x["per_minute"] for x in v) / len(v) for n, v in res.items()}
     print(f"scaling: {per_min[1]:.2f} -> {per_min[2]:.2f} takes/min: {per_min[2] / per_min[1]:.2f}x "
           f"(mean of {rounds} round(s); target >= 1.6x)", flush=True)
+    return {"runs": res, "ratio": per_min[2] / per_min[1]}
 
 
-def contention(shoot: Path, work: Path, rounds: int, modes: list[str], baseline: bool) -> None:
+def contention(shoot: Path, work: Path, rounds: int, modes: list[str], baseline: bool) -> list[dict]:
     from tests.ray_cluster import LocalCluster
 
+    out = []
     niceness = [("fixed", None)] + ([("ray default niceness 15", "15")] if baseline else [])
     for mode in modes:
         cluster = LocalCluster(nodes=2, cpus=1) if mode == "cluster" else None
@@ -141,12 +143,14 @@ def contention(shoot: Path, work: Path, rounds: int, modes: list[str], baseline:
                 b = sum(x["wall"] for x in busy) / rounds
                 print(f"contention, {mode} mode, {label}: {a:.1f} s alone, {b:.1f} s with the job: {b / a:.2f}x "
                       f"(target <= 2.5x)", flush=True)
+                out.append({"mode": mode, "niceness": label, "alone": alone, "busy": busy, "ratio": b / a})
         finally:
             if cluster is not None:
                 cluster.close()
+    return out
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--takes", type=int, default=4)
@@ -163,11 +167,13 @@ def main(argv: list[str] | None = None) -> None:
     shoot = make_shoot(a.work, a.takes, a.frames)
     print(f"shoot: {a.takes} takes x {a.frames} frames of the tiny actor, 20 iterations, window 8, 1 thread per "
           f"take; {os.cpu_count()} cores; load {load()}", flush=True)
+    res = {}
     if a.only in (None, "scaling") and not a.quick:
-        scaling(shoot, a.work, a.rounds)
+        res["scaling"] = scaling(shoot, a.work, a.rounds)
     if a.only in (None, "contention"):
         modes = ["cluster"] if a.quick else a.modes.split(",")
-        contention(shoot, a.work, a.rounds, modes, a.baseline)
+        res["contention"] = contention(shoot, a.work, a.rounds, modes, a.baseline)
+    return res
 
 
 if __name__ == "__main__":

@@ -58,16 +58,18 @@ def _serve(nodes: int, cpus: float) -> None:
 
 
 class LocalCluster:
-    """``with LocalCluster(2) as c:`` a cluster of ``nodes`` x ``cpus`` at ``c.address``; ``c.kill(i)``."""
+    """``with LocalCluster(2) as c:`` a cluster of ``nodes`` x ``cpus`` at ``c.address``; ``c.kill(i)``.
 
-    def __init__(self, nodes: int = 2, cpus: float = 1, timeout: float = 120.0):
+    ``auth=False``: a cluster without token authentication (``RAY_AUTH_MODE=disabled`` on its nodes)."""
+
+    def __init__(self, nodes: int = 2, cpus: float = 1, auth: bool = True):
         self.tmp = Path(tempfile.mkdtemp(prefix="r19c", dir="/tmp"))   # short: Ray's socket paths
         self.home = self.tmp / "home"
         (self.home / ".ray").mkdir(parents=True)
         self.token = secrets.token_hex(32)
         (self.home / ".ray" / "auth_token").write_text(self.token)
         env = self.base_env()
-        env["RAY_AUTH_MODE"] = "token"
+        env["RAY_AUTH_MODE"] = "token" if auth else "disabled"
         self.proc = subprocess.Popen([sys.executable, "-m", "tests.ray_cluster", "--nodes", str(nodes),
                                       "--cpus", str(cpus)], cwd=ROOT, env=env, stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=open(self.tmp / "cluster.log", "wb"),

@@ -116,3 +116,13 @@ def test_bench_scale_quick(tmp_path):
     res = main(["--quick", "--out", str(tmp_path)])
     assert [r["frames"] for r in res["rows"] if r["series"] == "length"] == [6, 12]
     assert all(r["peak_rss_mb"] > 0 for r in res["rows"]) and (tmp_path / "scale.png").is_file()
+
+
+@pytest.mark.slow
+def test_bench_batch_cluster_quick(tmp_path):
+    from benchmarks.bench_batch_cluster import main
+
+    res = main(["--quick", "--work", str(tmp_path)])
+    (c,) = res["contention"]
+    assert c["mode"] == "cluster" and c["ratio"] > 0
+    assert [(r["takes"], r["nodes"]) for r in c["alone"] + c["busy"]] == [(2, 2), (2, 2)]

@@ -1,18 +1,26 @@
 """The Ray side of ``capture batch``: start or join Ray, run takes as tasks, retry once, count frames.
 
 * :func:`connect` starts an **embedded** local Ray sized to ``workers x threads`` CPUs of this
-  machine, or joins an existing cluster with ``address`` (``ray start --head`` on one machine,
-  ``ray start --address ...`` on the others). When the calling process already has Ray initialised
-  (a script or a test), that Ray is used as it is.
-* Every take is one task asking for ``threads`` CPUs; the task pins torch to as many threads
-  (:func:`capture.batch.take.process_take`). A take split into segments
+  machine (always a new one, even when ``ray start`` runs here), or joins an existing cluster with
+  ``address`` (``ray start --head`` on one machine, ``ray start --address ...`` on the others;
+  ``auto``: ``RAY_ADDRESS`` or the cluster ``ray start`` started here). Joining finds the token of
+  a token-authenticated cluster as Ray's CLI does (:func:`find_token`) and probes the cluster first
+  (:func:`probe_cluster`): a failure is one line naming the address, the token or version skew, and
+  Ray's own messages go to a log file. When the calling process already has Ray initialised (a
+  script or a test), that Ray is used as it is.
+* The workers run with :func:`worker_env` (a job-wide ``runtime_env``): at this process's niceness
+  rather than Ray's 15, and with thread pools of ``threads`` threads that do not spin.
+* Every take is one task asking for ``threads`` CPUs; the task checks the take's storage and pins its
+  threads (:func:`capture.batch.take.guarded`). A take split into segments
   (:mod:`capture.batch.segments`) is one task per segment plus a merge task that Ray starts when
   they are done. At most ``workers`` tasks are in flight.
 * Ray's own task retries are off (``max_retries=0``): a take whose task failed with an unexpected
-  error, or whose worker process died, is submitted once more by :func:`run_tasks`; a take that failed
-  on its input (:class:`~capture.io.errors.CaptureError`) is not (the message says what to fix).
-* Fitted frames flow from the tasks to a tiny counter actor (0 CPUs) that the driver polls for the
-  shoot-wide progress.
+  error, or whose worker process or node died, is submitted once more by :func:`run_tasks` (Ray places
+  it on a node that is alive; it resumes from what its run folder kept); a take that failed on its
+  input (:class:`~capture.io.errors.CaptureError`, or a path its node cannot reach) is not (the message
+  says what to fix).
+* Fitted frames flow from the tasks to a tiny counter actor (0 CPUs, on the driver's node) that the
+  driver polls for the shoot-wide progress.
 
 On a cluster every machine needs this package installed and must see the shoot's paths (videos,
 actors, cameras, the output folder) at the same place: a shared file system.
@@ -192,7 +200,8 @@ def connect(address: str | None, workers: int, threads: int) -> RayInfo:
 
         log = Path(tempfile.gettempdir()) / f"capture_batch_ray_join_{os.getpid()}.log"
         token = find_token()
-        gcs = probe_cluster(address, token, log)
+        # A Ray Client address (ray://) goes to ray.init as it is: its server is not a GCS to probe.
+        gcs = address if address.startswith("ray://") else probe_cluster(address, token, log)
         try:
             with _quiet_stderr(log):
                 ray.init(address=gcs, log_to_driver=False, logging_level=logging.ERROR,

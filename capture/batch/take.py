@@ -1,9 +1,11 @@
 """One take of a ``capture batch``: its settings key, whether it is already done, and running it.
 
 This module knows nothing of Ray: :func:`process_take` is what a Ray task calls on a worker (and what
-a test can call directly). It runs :func:`capture.run.take.run_take` (the stages, caches and report of
-``capture run``) with torch pinned to the task's threads, appends what happened to the take's log
-``OUT/batch_take.log`` and returns a plain-data result; it never raises for a bad take.
+a test can call directly). It first checks that this machine can read the take's inputs and write
+its output folder (:func:`check_storage`), then runs :func:`capture.run.take.run_take` (the stages,
+caches and report of ``capture run``) with the worker's threads pinned (:func:`pin_threads`), appends
+what happened to the take's log ``OUT/batch_take.log`` and returns a plain-data result (with the
+machine, Ray node and niceness it ran on); it never raises for a bad take.
 
 A take is *done* when its run folder's ``batch_take.json`` (written by the batch driver) says so for
 the same key and ``run.json`` / ``report.json`` agree. The key hashes the take's settings and
