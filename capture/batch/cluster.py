@@ -199,6 +199,7 @@ def connect(address: str | None, workers: int, threads: int) -> RayInfo:
         import tempfile
 
         log = Path(tempfile.gettempdir()) / f"capture_batch_ray_join_{os.getpid()}.log"
+        logging.getLogger("ray").setLevel(logging.ERROR)   # as ray.init(logging_level=ERROR) will: no warnings
         token = find_token()
         # A Ray Client address (ray://) goes to ray.init as it is: its server is not a GCS to probe.
         gcs = address if address.startswith("ray://") else probe_cluster(address, token, log)
