@@ -59,10 +59,10 @@ class RayInfo:
 def worker_env(threads: int) -> dict[str, str]:
     """Environment of the Ray workers that run takes (a job-wide ``runtime_env``).
 
-    * ``RAY_worker_niceness``: Ray starts its workers at niceness 15, so that any ordinary (niceness 0)
-      process on the machine takes the CPU from them: with one competing 2-thread job on 2 cores a
-      take ran 8x slower than alone (``capture run`` 2-3x). The workers run at this driver's own
-      niceness instead (``nice capture batch ...`` still makes them yield), or at
+    * ``RAY_worker_niceness``: Ray starts its workers at niceness 15, so any ordinary (niceness 0) job
+      the kernel schedules with them (the same session's autogroup, or all jobs where autogroups are
+      off) takes the CPU from them (a niceness-15 thread weighs 36 against 1024). The workers run at
+      this driver's own niceness instead (``nice capture batch ...`` still makes them yield), or at
       ``RAY_worker_niceness`` when the driver's environment sets it (15: Ray's default).
     * OpenMP, MKL and OpenBLAS pools of ``threads`` threads that sleep rather than spin when idle.
     """
