@@ -35,7 +35,6 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _serve(nodes: int, cpus: float) -> None:
-    import ray
     from ray.cluster_utils import Cluster
 
     common = {"node_ip_address": "127.0.0.1", "num_cpus": cpus, "object_store_memory": 80 * 1024 * 1024}
@@ -54,7 +53,6 @@ def _serve(nodes: int, cpus: float) -> None:
                 break
     finally:
         cluster.shutdown()
-        del ray
 
 
 class LocalCluster:
@@ -72,7 +70,7 @@ class LocalCluster:
         env["RAY_AUTH_MODE"] = "token" if auth else "disabled"
         self.proc = subprocess.Popen([sys.executable, "-m", "tests.ray_cluster", "--nodes", str(nodes),
                                       "--cpus", str(cpus)], cwd=ROOT, env=env, stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=open(self.tmp / "cluster.log", "wb"),
+                                     stdout=subprocess.PIPE, stderr=open(self.tmp / "cluster.log", "wb"),  # noqa: SIM115
                                      text=True, start_new_session=True)
         line = self.proc.stdout.readline()
         if not line:
@@ -110,7 +108,7 @@ class LocalCluster:
                 self.proc.wait()
         shutil.rmtree(self.tmp, ignore_errors=True)
 
-    def __enter__(self) -> "LocalCluster":
+    def __enter__(self) -> LocalCluster:  # noqa: PYI034
         return self
 
     def __exit__(self, *exc) -> None:

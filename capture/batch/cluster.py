@@ -111,7 +111,8 @@ def find_token() -> str | None:
     if mode is None:
         try:   # Ray's own switch (sets RAY_AUTH_MODE=token and refreshes its config), quietly
             from ray._private.authentication.authentication_token_setup import (
-                maybe_enable_token_auth_if_token_available)
+                maybe_enable_token_auth_if_token_available,
+            )
 
             logging.getLogger("ray._private.authentication.authentication_token_setup").setLevel(logging.ERROR)
             if not maybe_enable_token_auth_if_token_available(warn_if_disabled=False):
@@ -165,7 +166,7 @@ def probe_cluster(address: str, token: str | None, log: Path) -> str:
         why = ("the cluster refused this driver's token" + (f" (from {token})" if token else "") if token
                else "the cluster requires a token and none was found")
         raise _join_error(address, gcs, why, _TOKEN_HELP) from None
-    except Exception as exc:  # RpcError, timeouts: not a Ray head, or one too busy to answer
+    except Exception as exc:  # noqa: BLE001 - RpcError, timeouts: not a Ray head, or one too busy to answer
         msg = " ".join(str(exc).split())[:200]
         raise _join_error(address, gcs, f"no answer from Ray's GCS ({msg})",
                           "check that the address is the head node's Ray port (default 6379) and that "
@@ -207,7 +208,7 @@ def connect(address: str | None, workers: int, threads: int) -> RayInfo:
             with _quiet_stderr(log):
                 ray.init(address=gcs, log_to_driver=False, logging_level=logging.ERROR,
                          runtime_env={"env_vars": env})
-        except Exception as exc:  # ConnectionError, RuntimeError (versions), AuthenticationError ...
+        except Exception as exc:  # noqa: BLE001 - ConnectionError, RuntimeError (versions), auth ...
             msg = " ".join(str(exc).split())[:300]
             check = _TOKEN_HELP if "auth" in msg.lower() or "token" in msg.lower() else (
                 "check the address, the token and that driver and cluster run the same Ray and Python versions")

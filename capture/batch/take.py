@@ -150,7 +150,7 @@ def node_name() -> str:
 
         if ray.is_initialized():
             return f"{host} (Ray node {ray.get_runtime_context().get_node_id()[:8]})"
-    except Exception:  # noqa: BLE001 - only a label
+    except Exception:  # noqa: BLE001, S110 - only a label
         pass
     return host
 
