@@ -203,7 +203,11 @@ def connect(address: str | None, workers: int, threads: int) -> RayInfo:
         logging.getLogger("ray").setLevel(logging.ERROR)   # as ray.init(logging_level=ERROR) will: no warnings
         token = find_token()
         # A Ray Client address (ray://) goes to ray.init as it is: its server is not a GCS to probe.
-        gcs = address if address.startswith("ray://") else probe_cluster(address, token, log)
+        try:
+            gcs = address if address.startswith("ray://") else probe_cluster(address, token, log)
+        except CaptureError:
+            log.unlink(missing_ok=True)   # the one line says what to check
+            raise
         try:
             with _quiet_stderr(log):
                 ray.init(address=gcs, log_to_driver=False, logging_level=logging.ERROR,
