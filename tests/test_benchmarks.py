@@ -133,3 +133,13 @@ def test_bench_overlay_quick():
     res = main(["--quick"])
     row = res["rows"][0]
     assert row["size"] == "640x360" and row["draw_default_ms"] > 0 and row["encode_ms"] > 0
+
+
+@pytest.mark.slow
+def test_bench_batch_cluster_quick(tmp_path):
+    from benchmarks.bench_batch_cluster import main
+
+    res = main(["--quick", "--work", str(tmp_path)])
+    (c,) = res["contention"]
+    assert c["mode"] == "cluster" and c["ratio"] > 0
+    assert [(r["takes"], r["nodes"]) for r in c["alone"] + c["busy"]] == [(2, 2), (2, 2)]

@@ -39,7 +39,7 @@ def take_row(name: str, out: Path, result: dict | None, status: str, attempts: i
             "reprojection_median_px": r.get("reprojection_median_px"),
             "reprojection_max_px": r.get("reprojection_max_px"), "seconds": r.get("seconds"),
             "cpu_seconds": r.get("cpu_seconds"),
-            "attempts": attempts, "host": r.get("host"), "out": str(out), "error": r.get("error")}
+            "attempts": attempts, "host": r.get("node") or r.get("host"), "out": str(out), "error": r.get("error")}
 
 
 def totals(rows: Sequence[dict], seconds: float) -> dict:
