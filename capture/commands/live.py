@@ -34,10 +34,11 @@ def live_command(
     from capture.run.live import LiveConfig, run_live
 
     fmts = parse_formats(formats)
-    if "overlay" in fmts:
+    other = [f for f in fmts if f not in ("obj", "ply", "usd", "npz")]
+    if other:
         from capture.io.errors import CaptureError
 
-        raise CaptureError("capture live writes no overlay; choose from obj, ply, usd, npz")
+        raise CaptureError(f"capture live writes no {', '.join(other)}; choose --formats from obj, ply, usd, npz")
     cfg = LiveConfig(source=source, actor=actor, detector=detector, camera=camera, out=out, formats=fmts, lag=lag,
                      json_to=json_to, max_frames=max_frames, fps=fps, preset=preset, threads=threads,
                      progress=progress)
