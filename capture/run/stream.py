@@ -7,7 +7,8 @@ decoding, onnxruntime, torch, file writes)::
     detect thread   cached segments read, the others detected (Detector.run_lanes)         -> FrameLandmarks per frame
     fit thread      capture.fit.stream.fit_take_stream: each window solved as soon as      -> FrameFit per frame
                     its frames (and the initial poses they depend on) are there
-    main thread     the exporters (and a second VideoReader when the overlay needs images) -> files
+    main thread     the exporters (and a second VideoReader when the overlay needs images) -> files;
+                    the progress bar ("fit", as capture batch follows it) counts the frames written
 
 Queues hold at most :data:`QUEUE_FRAMES` frames; the decoder works at most one group of detection
 segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector and frames are
@@ -348,7 +349,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     ctx = replace(export_context, options=replace(export_context.options, overwrite=True))
     want_images = any(EXPORTERS[f].needs_image for f in formats)
     try:
-        with open_exporters(formats, out, ctx) as writers, StageProgress("capture", n_frames, progress) as bar:
+        with open_exporters(formats, out, ctx) as writers, StageProgress("fit", n_frames, progress) as bar:
             reader = VideoReader(cfg.video) if want_images else None
             pipe_line.start("decode", decode, clocks["decode"])
             pipe_line.start("detect", detect, clocks["detect"])
