@@ -26,6 +26,7 @@ import numpy as np
 
 from calib.camera import Camera
 from calib.holdout import HoldoutResult, holdout_check
+from calib.solve import Solve, solve  # noqa: F401  (Solve: part of this module's API)
 from calib.models import OPENCV_DEFAULT, DistortionModel, candidate_models
 from capture.io.errors import CaptureError
 
@@ -73,19 +74,6 @@ class ViewError:
 
 
 @dataclass(frozen=True)
-class Solve:
-    """One ``cv2.calibrateCameraExtended`` result; ``dist`` has the model's length (5 or 8)."""
-
-    rms: float
-    K: np.ndarray
-    dist: np.ndarray
-    rvecs: list[np.ndarray]
-    tvecs: list[np.ndarray]
-    std_int: np.ndarray
-    per_view: np.ndarray
-
-
-@dataclass(frozen=True)
 class CalibrationResult:
     camera: Camera
     rms_px: float
@@ -100,24 +88,6 @@ class CalibrationResult:
     rounds: int = 1
     object_points: list[np.ndarray] = field(repr=False, default_factory=list)  # of the used views
     image_points: list[np.ndarray] = field(repr=False, default_factory=list)
-
-
-def solve(obj: list[np.ndarray], img: list[np.ndarray], image_size: tuple[int, int],
-          model: DistortionModel, options: CalibrationOptions) -> Solve:
-    """``cv2.calibrateCameraExtended`` with the model's flags; one-line CaptureError if OpenCV fails."""
-    import cv2
-
-    K0 = np.eye(3)  # only read for CALIB_FIX_ASPECT_RATIO (ratio 1)
-    try:
-        out = cv2.calibrateCameraExtended(obj, img, tuple(image_size), K0, None, flags=options.flags(model))
-    except cv2.error as exc:
-        detail = str(exc).strip().splitlines()[-1][-120:]
-        raise CaptureError(
-            f"OpenCV calibration failed ({detail}); record the board at more distances and tilts"
-        ) from None
-    rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = out
-    return Solve(float(rms), K, dist.reshape(-1)[: model.n_dist].copy(), [r.reshape(3) for r in rvecs],
-                 [t.reshape(3) for t in tvecs], std_int.reshape(-1), per_view.reshape(-1))
 
 
 def calibrate_views(

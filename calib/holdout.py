@@ -58,7 +58,7 @@ def holdout_check(obj: list[np.ndarray], img: list[np.ndarray], image_size: tupl
 
     With ``full`` (the model calibrated on all views) the spread over the image is measured too.
     """
-    from calib.calibrate import solve
+    from calib.solve import solve
     from capture.io.errors import CaptureError
 
     fold = fold_of(len(obj), options.folds)
