@@ -7,6 +7,7 @@ and a non-zero exit status, and an interrupt (Ctrl-C) into exit status 130 with 
 
 from __future__ import annotations
 
+import errno
 import sys
 
 import typer
@@ -38,13 +39,33 @@ app.command("retarget")(retarget_command)
 app.command("batch")(batch_command)
 
 
+#: OS errors that are the user's to fix (disk full, read-only or forbidden folder), reported as one line.
+USER_OS_ERRORS = {errno.ENOSPC: "no space left on device: free some space", errno.EDQUOT: "disk quota exceeded: "
+                  "free some space", errno.EROFS: "read-only file system: choose a folder you can write to",
+                  errno.EACCES: "permission denied: choose a folder you can write to",
+                  errno.EPERM: "operation not permitted: choose a folder you can write to",
+                  errno.ENOTDIR: "a path component is a file, not a folder: choose another path"}
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 success, 2 user error, 130 interrupted)."""
+    from capture.io.quiet import configure
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    verbose = "--verbose" in args  # accepted anywhere on the line: `capture run ... --verbose`
+    configure(verbose)
     try:
-        app(args=argv, prog_name="capture", standalone_mode=True)
+        app(args=[a for a in args if a != "--verbose"], prog_name="capture", standalone_mode=True)
     except CaptureError as exc:
         print(f"capture: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except OSError as exc:
+        if exc.errno not in USER_OS_ERRORS:
+            raise
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"capture: error: {USER_OS_ERRORS[exc.errno]}{where}, then run the same command again (finished "
+              f"work is kept)", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("capture: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
