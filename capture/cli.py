@@ -11,6 +11,7 @@ import errno
 import sys
 
 import typer
+from typer._click import exceptions as click_exceptions
 
 from calib.cli import calibrate_command
 from capture.commands.actor import actor_app
@@ -55,7 +56,21 @@ def main(argv: list[str] | None = None) -> int:
     verbose = "--verbose" in args  # accepted anywhere on the line: `capture run ... --verbose`
     configure(verbose)
     try:
-        app(args=[a for a in args if a != "--verbose"], prog_name="capture", standalone_mode=True)
+        code = app(args=[a for a in args if a != "--verbose"], prog_name="capture", standalone_mode=False)
+        return code if isinstance(code, int) else 0
+    except click_exceptions.NoArgsIsHelpError as exc:
+        print(exc.ctx.get_help() if exc.ctx is not None else "", file=sys.stderr)
+        return 2
+    except click_exceptions.ClickException as exc:  # a usage error: one line, like every other error
+        where = f"capture {' '.join(exc.ctx.command_path.split()[1:])}".strip() if getattr(exc, "ctx", None) else "capture"
+        message = " ".join(exc.format_message().split()).rstrip(".")
+        print(f"capture: error: {message}; see '{where} --help'", file=sys.stderr)
+        return exc.exit_code if exc.exit_code else 2
+    except click_exceptions.Abort:
+        print("capture: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    except click_exceptions.Exit as exc:
+        return exc.exit_code
     except CaptureError as exc:
         print(f"capture: error: {exc}", file=sys.stderr)
         return exc.exit_code
