@@ -146,8 +146,10 @@ def read_camera_opencv(path: str | os.PathLike) -> Camera:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except Exception as exc:  # cv2.error (wrapped in SystemError by the bindings) on a parse error
-        detail = str(exc.__cause__ or exc).strip().splitlines()[-1][-160:]
-        raise CaptureError(f"{path}: not an OpenCV YAML/XML file ({detail})") from None
+        detail = str(exc.__cause__ or exc).strip().splitlines()[-1]
+        detail = detail.split(" error: ", 1)[-1].strip()[-120:]  # OpenCV's own message, not its source path
+        raise CaptureError(f"{path}: not an OpenCV YAML/XML file ({detail}); give the file written by "
+                           f"cv2.FileStorage or capture calibrate") from None
     try:
         if not fs.isOpened():
             raise CaptureError(f"{path}: OpenCV could not open this file as YAML/XML")
@@ -205,6 +207,8 @@ FOV_RANGE_DEG = (1.0, 175.0)
 MAX_ASPECT = 4.0
 #: Largest round-trip error (px) of undistorting and re-distorting points over the image.
 MAX_DISTORTION_ROUNDTRIP_PX = 1.0
+#: Largest factor by which distortion may stretch or shrink the view at the image's edge.
+MAX_DISTORTION_SCALE = 4.0
 
 
 def check_camera_plausible(camera: Camera, source: str) -> Camera:
@@ -234,6 +238,16 @@ def check_camera_plausible(camera: Camera, source: str) -> Camera:
             pts = np.concatenate([und, np.ones((len(und), 1))], 1)
             back = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), camera.K, camera.dist)[0].reshape(-1, 2)
         err = np.inf if back is None or not np.isfinite(back).all() else float(np.abs(back - px.reshape(-1, 2)).max())
+        if back is not None and err <= MAX_DISTORTION_ROUNDTRIP_PX:
+            pin = (px.reshape(-1, 2) - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
+            rd, ru = np.linalg.norm(pin, axis=1), np.linalg.norm(und, axis=1)
+            far = rd > 0.25 * rd.max()
+            worst = ru[far] / rd[far]
+            if far.any() and not (1.0 / MAX_DISTORTION_SCALE <= worst.min() and worst.max() <= MAX_DISTORTION_SCALE):
+                bad = worst.min() if worst.min() < 1.0 / MAX_DISTORTION_SCALE else worst.max()
+                raise CaptureError(f"{source}: the distortion coefficients {np.round(camera.dist[:5], 4).tolist()} scale "
+                                   f"the view by {bad:.3g} at the image's edge (a lens does at most {MAX_DISTORTION_SCALE:g}x); "
+                                   f"check the coefficients' order (k1, k2, p1, p2, k3) or recalibrate")
         if not err <= MAX_DISTORTION_ROUNDTRIP_PX:
             raise CaptureError(f"{source}: the distortion coefficients {np.round(camera.dist[:5], 4).tolist()} do not "
                                f"invert over the {w}x{h} image (points move {err:.3g} px on a round trip); check the "

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import sys
+import warnings
 
 import typer
 from typer._click import exceptions as click_exceptions
@@ -56,7 +57,10 @@ def main(argv: list[str] | None = None) -> int:
     verbose = "--verbose" in args  # accepted anywhere on the line: `capture run ... --verbose`
     configure(verbose)
     try:
-        code = app(args=[a for a in args if a != "--verbose"], prog_name="capture", standalone_mode=False)
+        with warnings.catch_warnings():
+            if not verbose:  # libraries' warnings (torch, trimesh, ...) are noise to a user; --verbose shows them
+                warnings.simplefilter("ignore")
+            code = app(args=[a for a in args if a != "--verbose"], prog_name="capture", standalone_mode=False)
         return code if isinstance(code, int) else 0
     except click_exceptions.NoArgsIsHelpError as exc:
         print(exc.ctx.get_help() if exc.ctx is not None else "", file=sys.stderr)
@@ -66,10 +70,10 @@ def main(argv: list[str] | None = None) -> int:
         message = " ".join(exc.format_message().split()).rstrip(".")
         print(f"capture: error: {message}; see '{where} --help'", file=sys.stderr)
         return exc.exit_code if exc.exit_code else 2
-    except click_exceptions.Abort:
+    except typer.Abort:
         print("capture: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
-    except click_exceptions.Exit as exc:
+    except typer.Exit as exc:
         return exc.exit_code
     except CaptureError as exc:
         print(f"capture: error: {exc}", file=sys.stderr)

@@ -143,8 +143,9 @@ def _show(actor, console: Console) -> None:
     try:
         _show_metadata(actor, read_metadata(str(actor)), console)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        what = f"'{exc.args[0]}'" if isinstance(exc, KeyError) else f"a malformed entry ({exc.__class__.__name__})"
-        raise CaptureError(f"actor '{actor}': its actor.json lacks {what}; retrain the actor or restore its "
+        what = (f"lacks '{exc.args[0]}'" if isinstance(exc, KeyError)
+                else f"has a malformed entry ({exc.__class__.__name__})")
+        raise CaptureError(f"actor '{actor}': its actor.json {what}; retrain the actor or restore its "
                            f"package") from None
 
 

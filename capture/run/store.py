@@ -247,8 +247,23 @@ def open_run_dir(out: Path, take_id: str, take_label: str, overwrite: bool, what
         raise
 
 
+def _comparable(run: dict) -> Any:
+    """``run.json`` content as plain data without the output folder (a moved run folder is the same run)."""
+    d = json.loads(json.dumps(run, default=str))
+    if isinstance(d.get("settings"), dict):
+        d["settings"].pop("out", None)
+    return d
+
+
 def write_run_json(out: Path, take_id: str, take_label: str, settings: dict, fingerprints: dict,
                    status: str) -> Path:
+    """Write ``run.json``; a rerun of a finished run with the same settings and inputs leaves it as it is."""
+    prev = read_json(Path(out) / RUN_JSON)
+    same = {"format": RUN_FORMAT, "version": 1, "take_id": take_id, "take_label": take_label,
+            "settings": settings, "fingerprints": fingerprints}
+    if (status == "running" and prev is not None and prev.get("status") == "done"
+            and _comparable({k: prev.get(k) for k in same}) == _comparable(same)):
+        return Path(out) / RUN_JSON
     return write_json(Path(out) / RUN_JSON, {"format": RUN_FORMAT, "version": 1, "take_id": take_id,
                                              "take_label": take_label, "status": status, "settings": settings,
                                              "fingerprints": fingerprints})
