@@ -5,6 +5,12 @@ fingerprints of the inputs; it is written before any work, so a folder that hold
 recognised and refused without ``--overwrite``. Frame fits are stored as plain arrays in chunks
 (``fit/<key>/frames_<first>.npz``, listed by ``fit/<key>/done.json``) so that exports can be redone
 without fitting again, and memory stays flat in the take's length.
+
+:func:`open_run_dir` claims a folder for a run: it creates and locks it (:mod:`capture.io.outdir`),
+finishes a swap cut short, removes temporary files of killed runs, refuses symbolic links among the
+run's entries, and decides where the run is built: in the folder itself, or -- when ``--overwrite``
+replaces a run -- in ``OUT/.overwrite/``, swapped in by :meth:`RunFolder.commit` only once the new
+run has succeeded (a journal, ``OUT/.swap.json``, lets the next run finish a swap that was cut short).
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -129,6 +136,7 @@ def _remove_run(out: Path, folder: Path, extra: tuple[str, ...] = ()) -> None:
             p.unlink()
 
 
+FRAME_FILE = re.compile(r"^frame_\d{6}\.(obj|ply)$")  # the per-frame files an export writes in meshes/
 STAGING = ".overwrite"       # a replacing run is built here, inside --out, and swapped in on success
 SWAP_JOURNAL = ".swap.json"  # written before the swap; a swap cut short is finished by the next run
 #: Hidden entries of a run folder that :func:`open_run_dir` checks and cleans besides :data:`OWNED`.
@@ -183,6 +191,11 @@ def finish_swap(out: Path, extra: tuple[str, ...] = ()) -> None:
         p = out / rel
         if p.is_file() and not p.is_symlink() and p.resolve().is_relative_to(root):
             p.unlink()
+    meshes = out / "meshes"
+    if "meshes" in journal.get("entries", []) and meshes.is_dir() and not meshes.is_symlink():
+        for f in meshes.iterdir():  # frame files of the old run that no export listed (one cut short)
+            if FRAME_FILE.match(f.name) and f.is_file() and not (staging / "meshes" / f.name).exists():
+                f.unlink()
     for name in journal.get("entries", []):
         src, dst = staging / name, out / name
         if not (src.exists() or src.is_symlink()):
@@ -205,7 +218,10 @@ def finish_swap(out: Path, extra: tuple[str, ...] = ()) -> None:
             shutil.rmtree(p)
         elif p.exists() or p.is_symlink():
             p.unlink()
-    meshes = out / "meshes"
+    if meshes.is_dir() and "meshes" not in journal.get("entries", []):
+        for f in meshes.iterdir():
+            if FRAME_FILE.match(f.name) and f.is_file():
+                f.unlink()
     if meshes.is_dir() and "meshes" not in journal.get("entries", []) and not any(meshes.iterdir()):
         meshes.rmdir()
     if staging.exists():
