@@ -116,3 +116,11 @@ def test_bench_scale_quick(tmp_path):
     res = main(["--quick", "--out", str(tmp_path)])
     assert [r["frames"] for r in res["rows"] if r["series"] == "length"] == [6, 12]
     assert all(r["peak_rss_mb"] > 0 for r in res["rows"]) and (tmp_path / "scale.png").is_file()
+
+
+def test_bench_overlay_quick():
+    from benchmarks.bench_overlay import main
+
+    res = main(["--quick"])
+    row = res["rows"][0]
+    assert row["size"] == "640x360" and row["draw_default_ms"] > 0 and row["encode_ms"] > 0

@@ -95,6 +95,11 @@ class UsdTakeWriter:
                 "capture:source": ctx.source,
             }
             self._stage = stage
+            self._rig = None
+            if getattr(ctx, "rig", None) is not None:   # --formats curves: the UsdSkel rig beside the mesh
+                from capture.export.usd_skel import SkelRigWriter
+
+                self._rig = SkelRigWriter(stage, ctx.rig, ctx.faces, CAMERA_TO_USD)
         except Exception:
             self._release()
             self._crate.discard()
@@ -123,6 +128,8 @@ class UsdTakeWriter:
             self._points.Set(Vt.Vec3fArray.FromNumpy(p), t)
             self._extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([p.min(0), p.max(0)])), t)
             self.samples += 1
+        if self._rig is not None:
+            self._rig.write(fit)
         if self._first is None:
             self._first = frame
         self._last = frame
@@ -162,6 +169,8 @@ class UsdTakeWriter:
 
     def _release(self) -> None:
         """Drop every reference to the layer so USD lets go of the (temporary) file."""
-        for name in ("_points", "_extent", "_visibility", "_stage", "_layer"):
+        if getattr(self, "_rig", None) is not None:
+            self._rig.release()
+        for name in ("_points", "_extent", "_visibility", "_rig", "_stage", "_layer"):
             if hasattr(self, name):
                 delattr(self, name)

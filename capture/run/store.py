@@ -32,8 +32,8 @@ from capture.io.errors import CaptureError
 RUN_JSON = "run.json"
 RUN_FORMAT = "capture-run"
 #: What a run folder may hold (removed by ``--overwrite`` when the folder holds another take).
-OWNED = ("run.json", "report.json", "export.json", "landmarks.npz", "detections", "fit", "meshes",
-         "params.npz", "take.usd", "take.usda", "take.usdc", "overlay.mp4")
+OWNED = ("run.json", "report.json", "report.html", "export.json", "landmarks.npz", "detections", "fit", "meshes",
+         "params.npz", "curves.csv", "take.usd", "take.usda", "take.usdc", "overlay.mp4")
 #: Files ``capture batch`` keeps in a take's run folder (its log and state); they may be there before
 #: the folder is claimed (a take that failed on its input) and are not removed by ``--overwrite``.
 BATCH_FILES = ("batch_take.json", "batch_take.log")

@@ -134,7 +134,7 @@ def run_take(cfg: RunConfig) -> dict:
 def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerprints: dict, t_start: float) -> dict:
     """The stages and the report of :func:`run_take`, built in ``folder.work`` and committed to ``folder.out``."""
     from capture.detector import LandmarkTrack
-    from capture.export import ExportContext, ExportOptions
+    from capture.export import ExportContext
     from calib.camera_io import camera_to_dict
     from capture.io.video import VideoReader
     from capture.run.checks import check_detections, check_head_depths
@@ -164,10 +164,12 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
                                    f"the detector's confidences") from None
             frames = fit_frames(fit_dir)
             stage = "export"
+            options = export_options(cfg)
             ctx = ExportContext(faces=np.asarray(inputs.actor.template.faces), fps=info.fps,
                                 image_size=(info.width, info.height), camera=cam, frame_count=len(frames),
-                                options=ExportOptions(), source=f"capture run {Path(cfg.video).name}, "
-                                                                f"actor {inputs.actor.name}")
+                                options=options, source=f"capture run {Path(cfg.video).name}, "
+                                                        f"actor {inputs.actor.name}",
+                                **rig_and_features(inputs.actor, cfg.formats))
             dets = {int(i): Detection(track.points[j], None if track.confidence is None else track.confidence[j],
                                       bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
 
@@ -176,7 +178,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
                     yield from reader.frames(frames)
 
             key = {"fit": fits_key(out, inputs, track), "formats": list(cfg.formats), "fps": info.fps,
-                   "video": inputs.video_id, "options": ExportOptions().__dict__}
+                   "video": inputs.video_id, "options": options.to_dict()}
             export_stage(fit_dir, ctx, cfg.formats, key, out, images=images, detections=dets, log=log,
                          progress=cfg.progress)
         except KeyboardInterrupt:
@@ -207,12 +209,63 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
         "skipped_frames": skipped, "per_frame": rows, "notes": inputs.notes})
     implausible = check_head_depths(fit_dir, rows)
     finish_report(report, rows, "reprojection_rms_px", out)
+    html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
+                video=Path(cfg.video), camera=cam, image_size=(info.width, info.height))
     check_complete(requested, frames)
     if implausible:
         raise CaptureError(implausible)
     write_run_json(out, inputs.video_id, label, settings, fingerprints, "done")
     folder.commit()
     return report
+
+
+def export_options(cfg):
+    """The exporters' options of a run (the overlay's layers from ``--overlay``)."""
+    from capture.export import ExportOptions
+
+    layers = getattr(cfg, "overlay", None)
+    return ExportOptions() if layers is None else ExportOptions(overlay_layers=tuple(layers))
+
+
+def rig_and_features(actor, formats) -> dict:
+    """``ExportContext`` fields from the actor: its blend-shape rig when ``curves`` is exported, the
+    template's feature lines (lids, lips, brows) when the overlay is."""
+    if "curves" not in formats and "overlay" not in formats:
+        return {}
+    from capture.export.features import face_features
+    from capture.export.rig import FaceRig
+
+    rig = FaceRig.from_actor(actor)
+    out = {"rig": rig} if "curves" in formats else {}
+    if "overlay" in formats:
+        out["features"] = face_features(np.asarray(actor.template.faces), np.asarray(actor.template.vertices),
+                                        rig.expressions, rig.names)
+    return out
+
+
+def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict], error_key: str, unit: str,
+                fps: float, detections: dict | None = None, video: Path | None = None, camera=None,
+                image_size: tuple[int, int] | None = None) -> Path:
+    """``OUT/report.html`` (:mod:`capture.export.report_html`): the take's plots and its worst frames."""
+    from capture.export.features import face_features
+    from capture.export.overlay_draw import FrameRenderer, Topology
+    from capture.export.report_html import take_series, thumbnails, worst_frames, write_report_html
+    from capture.export.rig import FaceRig
+
+    rig = FaceRig.from_actor(actor)
+    errors = {int(r["frame"]): r.get(error_key) for r in rows}
+    series = take_series(iter_fits(fit_dir), fps, rig.names, errors, unit, detections)
+    thumbs = []
+    if video is not None and camera is not None and image_size is not None:
+        worst = worst_frames(series)
+        faces = np.asarray(actor.template.faces)
+        feats = face_features(faces, np.asarray(actor.template.vertices), rig.expressions, rig.names)
+        renderer = FrameRenderer(Topology.of(faces, feats), camera, image_size, fps,
+                                 ("mesh", "contours", "landmarks"))   # the caption says frame and error
+        want = set(worst)
+        fits = {int(f.frame): f for f in iter_fits(fit_dir) if int(f.frame) in want}
+        thumbs = thumbnails(video, worst, fits, detections or {}, renderer)
+    return write_report_html(out, report, series, thumbs)
 
 
 def fits_key(out: Path, inputs, track) -> str:
@@ -238,6 +291,6 @@ def finish_report(report: dict, rows: list[dict], error_key: str, out: Path) -> 
     mesh_files = [f for f in files if f.startswith("meshes/")]
     others = [f for f in files if not f.startswith("meshes/")]
     report["outputs"] = ([f"meshes/ ({len(mesh_files)} files)"] if mesh_files else []) + others + \
-        ["report.json"]
+        ["report.json", "report.html"]
     report["output_files"] = files
     write_report(out, report)
