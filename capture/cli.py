@@ -3,6 +3,9 @@
 Each sub-command is a thin module of :mod:`capture.commands` (``calib.cli`` for calibration) that parses
 options and calls one function of its package; all are registered here. :func:`main` turns :class:`~capture.io.errors.CaptureError` into a one-line message
 and a non-zero exit status, and an interrupt (Ctrl-C) into exit status 130 with a hint to resume.
+Usage errors (a missing option, ``--seed abc``) and the OS errors a user can fix (disk full, read-only
+or forbidden folder) are one line with exit status 2 as well. Library log output and warnings are
+silenced (:mod:`capture.io.quiet`) unless ``--verbose`` is given anywhere on the command line.
 """
 
 from __future__ import annotations

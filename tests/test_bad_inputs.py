@@ -1004,3 +1004,25 @@ def test_one_broken_actor_does_not_break_actor_list(env, tmp_path, monkeypatch, 
     bad = [r for r in rows if "unusable" in r]
     assert len(bad) == 1 and "bad" in bad[0]
     assert any("tiny" in r and "unusable" not in r for r in rows)   # the good one, listed by its name
+
+
+def test_a_crafted_detection_cache_is_never_loaded_whole(env, tmp_path, capsys):
+    """A few hundred kB of compressed zeros posing as a detection segment (300 MB when loaded) is refused from its
+    headers and detected again: the run's traced memory stays far below the archive's declared size."""
+    import tracemalloc
+
+    out = run_copy(env, tmp_path)
+    seg = next(out.glob("detections/*/seg_*.npz"))
+    np.savez_compressed(seg, frame_index=np.zeros(1, np.int64), points=np.zeros(300_000_000, np.uint8))
+    (out / "detections" / "track.npz").unlink()
+    assert seg.stat().st_size < 2_000_000
+    tracemalloc.start()
+    try:
+        assert main(run_args(env, out=out)) == 0
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    capsys.readouterr()
+    assert peak < 150_000_000, peak
+    with np.load(out / "landmarks.npz") as a, np.load(env.run / "landmarks.npz") as b:
+        np.testing.assert_array_equal(a["points"], b["points"])
