@@ -902,7 +902,6 @@ def test_frames_without_a_face_are_bridged_as_documented(env, tmp_path, capsys):
 
 
 def test_collapsed_detector_output_is_an_error_not_a_success(env, tmp_path, monkeypatch, capsys):
-    import capture.run.take as take
     from capture.run.checks import landmark_problems
 
     pts = np.zeros((2, 10, 2)) + 50.0
@@ -910,7 +909,6 @@ def test_collapsed_detector_output_is_an_error_not_a_success(env, tmp_path, monk
     problems = landmark_problems(pts, None)
     assert "collapsed" in problems[0] and problems[1] == ""
 
-    real = take.LandmarkTrack.load_npz if hasattr(take, "LandmarkTrack") else None
     from capture.detector import LandmarkTrack
 
     orig = LandmarkTrack.load_npz.__func__
@@ -921,7 +919,6 @@ def test_collapsed_detector_output_is_an_error_not_a_success(env, tmp_path, monk
         return t
 
     monkeypatch.setattr(LandmarkTrack, "load_npz", classmethod(collapsed))
-    del real
     rc = main(run_args(env, out=tmp_path / "o"))
     msg = one_line_error(rc, capsys.readouterr().err)
     assert "collapsed" in msg
