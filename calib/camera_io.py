@@ -146,8 +146,10 @@ def read_camera_opencv(path: str | os.PathLike) -> Camera:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except Exception as exc:  # cv2.error (wrapped in SystemError by the bindings) on a parse error
-        detail = str(exc.__cause__ or exc).strip().splitlines()[-1][-160:]
-        raise CaptureError(f"{path}: not an OpenCV YAML/XML file ({detail})") from None
+        detail = str(exc.__cause__ or exc).strip().splitlines()[-1]
+        detail = detail.split(" error: ", 1)[-1].strip()[-120:]  # OpenCV's own message, not its source path
+        raise CaptureError(f"{path}: not an OpenCV YAML/XML file ({detail}); give the file written by "
+                           f"cv2.FileStorage or capture calibrate") from None
     try:
         if not fs.isOpened():
             raise CaptureError(f"{path}: OpenCV could not open this file as YAML/XML")
@@ -158,15 +160,31 @@ def read_camera_opencv(path: str | os.PathLike) -> Camera:
                 f"{path}: missing {', '.join(missing)}; an OpenCV calibration file needs camera_matrix, "
                 "distortion_coefficients, image_width and image_height"
             )
-        K = nodes["camera_matrix"].mat()
-        dist = nodes["distortion_coefficients"].mat()
-        if K is None or dist is None:
-            raise CaptureError(f"{path}: camera_matrix and distortion_coefficients must be !!opencv-matrix nodes")
+        mats = {}
+        for k in ("camera_matrix", "distortion_coefficients"):
+            m = None
+            if nodes[k].isMap():
+                try:
+                    m = nodes[k].mat()
+                except Exception:  # cv2.error: a map that is not an opencv-matrix
+                    m = None
+            if m is None or not np.issubdtype(np.asarray(m).dtype, np.number):
+                raise CaptureError(f"{path}: {k} must be an !!opencv-matrix node (rows, cols, dt, data); fix the file "
+                                   f"or recalibrate with capture calibrate")
+            mats[k] = np.asarray(m, np.float64)
+        K, dist = mats["camera_matrix"], mats["distortion_coefficients"]
+        for k in ("image_width", "image_height"):
+            if not (nodes[k].isInt() or nodes[k].isReal()):
+                raise CaptureError(f"{path}: {k} must be a number of pixels, got a {_node_kind(nodes[k])}")
         width, height = nodes["image_width"].real(), nodes["image_height"].real()
-        if width != int(width) or height != int(height):
+        if not (math.isfinite(width) and math.isfinite(height)) or width != int(width) or height != int(height):
             raise CaptureError(f"{path}: image_width and image_height must be integers")
         rms_node = fs.getNode("avg_reprojection_error")
-        rms = None if rms_node.empty() else float(rms_node.real())
+        rms = None
+        if not rms_node.empty():
+            if not (rms_node.isInt() or rms_node.isReal()):
+                raise CaptureError(f"{path}: avg_reprojection_error must be a number, got a {_node_kind(rms_node)}")
+            rms = float(rms_node.real())
     finally:
         fs.release()
     try:
@@ -175,15 +193,80 @@ def read_camera_opencv(path: str | os.PathLike) -> Camera:
         raise CaptureError(f"{path}: {exc}") from None
 
 
+def _node_kind(node) -> str:
+    for name in ("isString", "isMap", "isSeq", "isNone"):
+        if getattr(node, name)():
+            return {"isString": "string", "isMap": "map", "isSeq": "sequence", "isNone": "null"}[name]
+    return "non-number"
+
+
+# ---------------------------------------------------------------------------------- plausibility
+#: Horizontal fields of view (degrees) a camera file may describe; outside is a unit or typing error.
+FOV_RANGE_DEG = (1.0, 175.0)
+#: Largest fy / fx (or fx / fy) accepted (anamorphic lenses are at most 2x).
+MAX_ASPECT = 4.0
+#: Largest round-trip error (px) of undistorting and re-distorting points over the image.
+MAX_DISTORTION_ROUNDTRIP_PX = 1.0
+#: Largest factor by which distortion may stretch or shrink the view at the image's edge.
+MAX_DISTORTION_SCALE = 4.0
+
+
+def check_camera_plausible(camera: Camera, source: str) -> Camera:
+    """One line when a camera parses but cannot be right: the principal point outside the image, a field of
+    view outside :data:`FOV_RANGE_DEG`, a wild aspect, or distortion that does not invert over the image."""
+    import cv2
+
+    w, h = camera.image_size
+    if not (-0.5 <= camera.cx <= w - 0.5 and -0.5 <= camera.cy <= h - 0.5):
+        raise CaptureError(f"{source}: principal point ({camera.cx:g}, {camera.cy:g}) lies outside the {w}x{h} image; "
+                           f"check K (cx, cy are pixels, near the image centre) or recalibrate")
+    fov = camera.fov_deg()
+    lo, hi = FOV_RANGE_DEG
+    if not all(lo <= f <= hi for f in fov):
+        raise CaptureError(f"{source}: fx={camera.fx:g}, fy={camera.fy:g} give a {fov[0]:.3g} x {fov[1]:.3g} degree field "
+                           f"of view for {w}x{h} images (plausible: {lo:g}-{hi:g}); focal lengths are in pixels: "
+                           f"check K or recalibrate")
+    if not 1.0 / MAX_ASPECT <= camera.fy / camera.fx <= MAX_ASPECT:
+        raise CaptureError(f"{source}: fy / fx = {camera.fy / camera.fx:.3g} is not a real lens's pixel aspect; check K")
+    if camera.dist.size and np.any(camera.dist != 0):
+        u, v = np.meshgrid(np.linspace(0, w - 1, 9), np.linspace(0, h - 1, 9))
+        px = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-9)
+        und = cv2.undistortPointsIter(px, camera.K, camera.dist, None, None, crit).reshape(-1, 2)
+        back = None
+        if np.isfinite(und).all():
+            pts = np.concatenate([und, np.ones((len(und), 1))], 1)
+            back = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), camera.K, camera.dist)[0].reshape(-1, 2)
+        err = np.inf if back is None or not np.isfinite(back).all() else float(np.abs(back - px.reshape(-1, 2)).max())
+        if back is not None and err <= MAX_DISTORTION_ROUNDTRIP_PX:
+            pin = (px.reshape(-1, 2) - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
+            rd, ru = np.linalg.norm(pin, axis=1), np.linalg.norm(und, axis=1)
+            far = rd > 0.25 * rd.max()
+            worst = ru[far] / rd[far]
+            if far.any() and not (1.0 / MAX_DISTORTION_SCALE <= worst.min() and worst.max() <= MAX_DISTORTION_SCALE):
+                bad = worst.min() if worst.min() < 1.0 / MAX_DISTORTION_SCALE else worst.max()
+                raise CaptureError(f"{source}: the distortion coefficients {np.round(camera.dist[:5], 4).tolist()} scale "
+                                   f"the view by {bad:.3g} at the image's edge (a lens does at most {MAX_DISTORTION_SCALE:g}x); "
+                                   f"check the coefficients' order (k1, k2, p1, p2, k3) or recalibrate")
+        if not err <= MAX_DISTORTION_ROUNDTRIP_PX:
+            raise CaptureError(f"{source}: the distortion coefficients {np.round(camera.dist[:5], 4).tolist()} do not "
+                               f"invert over the {w}x{h} image (points move {err:.3g} px on a round trip); check the "
+                               f"coefficients' order (k1, k2, p1, p2, k3) or recalibrate")
+    return camera
+
+
 # ------------------------------------------------------------------------------------- dispatch
-def read_camera(path: str | os.PathLike) -> Camera:
-    """Read a camera file: ``.json`` (ours) or ``.yaml``/``.yml``/``.xml`` (OpenCV)."""
+def read_camera(path: str | os.PathLike, check: bool = True) -> Camera:
+    """Read a camera file: ``.json`` (ours) or ``.yaml``/``.yml``/``.xml`` (OpenCV).
+
+    With ``check`` (the default) the camera must also be plausible (:func:`check_camera_plausible`).
+    """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".json":
-        return read_camera_json(path)
+        return check_camera_plausible(read_camera_json(path), str(path)) if check else read_camera_json(path)
     if suffix in OPENCV_SUFFIXES:
-        return read_camera_opencv(path)
+        return check_camera_plausible(read_camera_opencv(path), str(path)) if check else read_camera_opencv(path)
     raise CaptureError(f"{path}: unknown camera file type; use .json (capture) or .yaml/.yml/.xml (OpenCV)")
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -113,6 +112,36 @@ class SourceRun:
 
 def read_source_run(run_dir: Path) -> SourceRun:
     """Check and read a finished run folder; one-line errors say what is missing and how to get it."""
+    try:
+        return _read_source_run(run_dir)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        what = f"lacks '{exc.args[0]}'" if isinstance(exc, KeyError) else f"is malformed ({exc.__class__.__name__})"
+        raise CaptureError(f"the run in {run_dir} {what} in its run.json, report.json or fit; rerun its capture "
+                           f"command to rebuild it, then retarget") from None
+
+
+#: Largest solved-window file read back (bytes); a window of a long take's codes is a few MiB.
+MAX_WINDOW_BYTES = 256 << 20
+
+
+def _read_window(p: Path) -> dict:
+    """One solved window (``torch.load`` with ``weights_only``: tensors only, no code runs); one line when bad."""
+    if p.stat().st_size > MAX_WINDOW_BYTES:
+        raise CaptureError(f"fit window {p} is {p.stat().st_size} bytes, more than a window can be; rerun the run's "
+                           f"capture command with --overwrite")
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:  # UnpicklingError, zip errors, EOFError, RuntimeError: all a damaged or crafted file
+        raise CaptureError(f"unreadable fit window {p} ({exc.__class__.__name__}); rerun the run's capture command "
+                           f"with --overwrite") from None
+    if (not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values())
+            or "codes" not in state or state["codes"].ndim != 2):
+        raise CaptureError(f"fit window {p} does not hold a solved window's tensors; rerun the run's capture command "
+                           f"with --overwrite")
+    return state
+
+
+def _read_source_run(run_dir: Path) -> SourceRun:
     from capture.run.stages import DONE_JSON, EXPORT_JSON
     from capture.run.store import RUN_FORMAT, RUN_JSON, read_json
 
@@ -139,10 +168,7 @@ def read_source_run(run_dir: Path) -> SourceRun:
                            f"command (it refits only what is missing), then retarget")
     windows = []
     for p in win_files:
-        try:
-            windows.append((int(p.stem.split("_")[1]), torch.load(p, map_location="cpu", weights_only=True)))
-        except (OSError, ValueError, RuntimeError, IndexError) as exc:
-            raise CaptureError(f"unreadable fit window {p} ({exc}); rerun the run's capture command") from None
+        windows.append((int(p.stem.split("_")[1]), _read_window(p)))
     frames = [int(i) for i in done["frames"]]
     _check_windows(windows, int(run["settings"]["overlap"]), len(frames), fit_dir)
     s = run["settings"]
@@ -230,7 +256,7 @@ def retarget_run(cfg: RetargetConfig) -> dict:
     from capture.run.inputs import check_device, parse_formats
     from capture.run.report import write_report
     from capture.run.stages import export_stage, fit_dir_for, run_fit_cached
-    from capture.run.store import claim_run_dir, digest, file_sha256, write_run_json
+    from capture.run.store import digest, open_run_dir, file_sha256, write_run_json
     from capture.io.signals import sigterm_as_interrupt
     from models.retarget import PARTS, retarget_points
 
@@ -273,71 +299,70 @@ def retarget_run(cfg: RetargetConfig) -> dict:
                 "source_actor": str(a.path), "to": str(b.path)}
     fingerprints = {"source_take": src.run["take_id"], "source_fit": src.fit_key, "source_weights_sha256": a_sha,
                     "target_weights_sha256": b_sha, "actor_weights_sha256": b_sha}
-    claim_run_dir(out, take_id, label, cfg.overwrite)
-    if cfg.overwrite:  # the part folders are not in claim_run_dir's list; they are cheap to redo
-        for d in PART_DIRS.values():
-            if d != "." and (out / d / "export.json").is_file():
-                shutil.rmtree(out / d)
-    write_run_json(out, take_id, label, settings, fingerprints, "running")
+    parts = tuple(d for d in PART_DIRS.values() if d != ".")
+    with open_run_dir(out, take_id, label, cfg.overwrite, what="retarget", extra=parts) as folder:
+        out = folder.work
+        write_run_json(out, take_id, label, settings, fingerprints, "running")
 
-    verts_a = torch.as_tensor(np.asarray(a.template.vertices), dtype=torch.float32, device=cfg.device)
-    verts_b = torch.as_tensor(np.asarray(b.template.vertices), dtype=torch.float32, device=cfg.device)
-    log: list[dict] = []
-    parts_out: dict[str, dict] = {}
-    options = ExportOptions(mesh_frame=cfg.mesh_frame)
-    camera = src.camera
+        verts_a = torch.as_tensor(np.asarray(a.template.vertices), dtype=torch.float32, device=cfg.device)
+        verts_b = torch.as_tensor(np.asarray(b.template.vertices), dtype=torch.float32, device=cfg.device)
+        log: list[dict] = []
+        parts_out: dict[str, dict] = {}
+        options = ExportOptions(mesh_frame=cfg.mesh_frame)
+        camera = src.camera
 
-    def images(frames):
-        from capture.io.video import VideoReader
+        def images(frames):
+            from capture.io.video import VideoReader
 
-        with VideoReader(src.video) as reader:
-            yield from reader.frames(frames)
+            with VideoReader(src.video) as reader:
+                yield from reader.frames(frames)
 
-    with sigterm_as_interrupt(), _num_threads(cfg.threads):
-        t0 = time.perf_counter()
-        target = retarget_points(a.model, verts_a, b.model, verts_b, order)
-        log.append({"stage": "query", "status": "done", "seconds": time.perf_counter() - t0})
-        for part in cfg.parts:
-            key = {"kind": "retarget", "part": part, "source_fit": src.fit_key, "source_weights_sha256": a_sha,
-                   "target_weights_sha256": b_sha, "expression_order": order}
-            part_dir = out if part == "full" else out / PART_DIRS[part]
-            try:
-                fdir = run_fit_cached(fit_dir_for(out, key), key, len(src.frames),
-                                      lambda _cache, p=part: retargeted_fits(src, target, p), f"retarget {part}",
-                                      cfg.progress, log)
-                log[-1]["stage"] = f"retarget {part}"
-                ctx = ExportContext(faces=np.asarray(b.template.faces), fps=src.fps, image_size=src.image_size,
-                                    camera=camera, frame_count=len(src.frames), options=options,
-                                    source=f"capture retarget {src.path.name} onto actor {b.name} ({part})",
-                                    **b_rig_and_features(b, formats, order))
-                export_stage(fdir, ctx, formats, {"fit": digest(key), "formats": list(formats), "fps": src.fps,
-                                                  "options": options.to_dict()}, part_dir,
-                             images=images if "overlay" in formats else None, log=log, progress=cfg.progress)
-                log[-1]["stage"] = f"export {part}"
-            except KeyboardInterrupt:
-                raise Interrupted(f"interrupted during retarget {part}; finished work is kept in {out}: run the "
-                                  f"same command to resume") from None
-            files = json.loads((part_dir / "export.json").read_text())["files"]
-            parts_out[part] = {"dir": str(part_dir), "files": len(files),
-                               "meshes": sum(f.startswith("meshes/") for f in files)}
+        with sigterm_as_interrupt(), _num_threads(cfg.threads):
+            t0 = time.perf_counter()
+            target = retarget_points(a.model, verts_a, b.model, verts_b, order)
+            log.append({"stage": "query", "status": "done", "seconds": time.perf_counter() - t0})
+            for part in cfg.parts:
+                key = {"kind": "retarget", "part": part, "source_fit": src.fit_key, "source_weights_sha256": a_sha,
+                       "target_weights_sha256": b_sha, "expression_order": order}
+                part_dir = out if part == "full" else out / PART_DIRS[part]
+                try:
+                    fdir = run_fit_cached(fit_dir_for(out, key), key, len(src.frames),
+                                          lambda _cache, p=part: retargeted_fits(src, target, p), f"retarget {part}",
+                                          cfg.progress, log)
+                    log[-1]["stage"] = f"retarget {part}"
+                    ctx = ExportContext(faces=np.asarray(b.template.faces), fps=src.fps, image_size=src.image_size,
+                                        camera=camera, frame_count=len(src.frames), options=options,
+                                        source=f"capture retarget {src.path.name} onto actor {b.name} ({part})",
+                                        **b_rig_and_features(b, formats, order))
+                    export_stage(fdir, ctx, formats, {"fit": digest(key), "formats": list(formats), "fps": src.fps,
+                                                      "options": options.to_dict()}, part_dir,
+                                 images=images if "overlay" in formats else None, log=log, progress=cfg.progress)
+                    log[-1]["stage"] = f"export {part}"
+                except KeyboardInterrupt:
+                    raise Interrupted(f"interrupted during retarget {part}; finished work is kept in {out}: run the "
+                                      f"same command to resume") from None
+                files = json.loads((part_dir / "export.json").read_text())["files"]
+                parts_out[part] = {"dir": str(part_dir), "files": len(files),
+                                   "meshes": sum(f.startswith("meshes/") for f in files)}
 
-    from capture.run.stages import iter_fits
+        from capture.run.stages import iter_fits
 
-    status = [str(f.status) for f in iter_fits(src.fit_dir)]
-    report = base_report("capture retarget", out, settings, log, t_start)
-    report.update({
-        "source_run": {"path": str(src.path), "take": src.run.get("take_label"), "fit_dir": str(src.fit_dir),
-                       "windows": len(src.windows), "fit_settings": src.settings["fit_settings"]},
-        "actors": {"source": {"name": a.name, "path": str(a.path), "weights_sha256": a_sha},
-                   "target": {"name": b.name, "path": str(b.path), "weights_sha256": b_sha}},
-        "correspondence": {"vertices": len(b.template.vertices), "expressions": a.metadata["shape_names"][1:],
-                           "target_columns": order, "same_order": order == list(range(len(order)))},
-        "frames": {"count": len(src.frames), "first": src.frames[0], "last": src.frames[-1],
-                   "fitted": status.count("fitted"), "bridged": status.count("bridged")},
-        "played": "per frame: head transform, jaw transform (about the target's jaw pivot), coefficient field "
-                  "F_W(z_j, c) at the source's corresponding template point",
-        "parts": parts_out, "outputs": {p: v["dir"] for p, v in parts_out.items()},
-        "per_frame": [{"frame": f, "status": s} for f, s in zip(src.frames, status)]})
-    write_report(out, report)
-    write_run_json(out, take_id, label, settings, fingerprints, "done")
-    return report
+        status = [str(f.status) for f in iter_fits(src.fit_dir)]
+        report = base_report("capture retarget", folder.out, settings, log, t_start)
+        report.update({
+            "source_run": {"path": str(src.path), "take": src.run.get("take_label"), "fit_dir": str(src.fit_dir),
+                           "windows": len(src.windows), "fit_settings": src.settings["fit_settings"]},
+            "actors": {"source": {"name": a.name, "path": str(a.path), "weights_sha256": a_sha},
+                       "target": {"name": b.name, "path": str(b.path), "weights_sha256": b_sha}},
+            "correspondence": {"vertices": len(b.template.vertices), "expressions": a.metadata["shape_names"][1:],
+                               "target_columns": order, "same_order": order == list(range(len(order)))},
+            "frames": {"count": len(src.frames), "first": src.frames[0], "last": src.frames[-1],
+                       "fitted": status.count("fitted"), "bridged": status.count("bridged")},
+            "played": "per frame: head transform, jaw transform (about the target's jaw pivot), coefficient field "
+                      "F_W(z_j, c) at the source's corresponding template point",
+            "parts": parts_out, "outputs": {p: v["dir"] for p, v in parts_out.items()},
+            "per_frame": [{"frame": f, "status": s} for f, s in zip(src.frames, status)]})
+        write_report(out, report)
+        write_run_json(out, take_id, label, settings, fingerprints, "done")
+        folder.commit()
+        return report

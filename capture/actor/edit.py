@@ -33,7 +33,7 @@ import numpy as np
 import torch
 import trimesh
 
-from capture.io.errors import CaptureError
+from capture.io.errors import CaptureError, read_text_file
 
 DEFAULT_FALLOFF_MM = 10.0
 
@@ -64,9 +64,17 @@ def read_region(path: Path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     if not path.is_file():
         raise CaptureError(f"region file not found: {path}; give a vertex list (.json/.txt) or a painted mesh (.ply/.obj)")
     suffix = path.suffix.lower()
+    if suffix not in (".json", ".txt", ".ply", ".obj"):
+        raise CaptureError(f"region file {path}: unknown type '{suffix}'; give a vertex list (.json/.txt) or a painted "
+                           f"mesh (.ply/.obj)")
     if suffix in (".ply", ".obj"):
-        mesh = trimesh.load(path, process=False, maintain_order=True, force="mesh")
-        if len(mesh.vertices) != n_vertices:
+        try:
+            mesh = trimesh.load(path, process=False, maintain_order=True, force="mesh")
+            n_mesh = len(mesh.vertices)
+        except Exception as exc:  # trimesh raises many types for corrupt files
+            raise CaptureError(f"painted region mesh {path} is not a readable mesh ({exc.__class__.__name__}); "
+                               f"export the painted template.ply again") from None
+        if n_mesh != n_vertices:
             raise CaptureError(f"painted region mesh {path} has {len(mesh.vertices)} vertices but the actor's template "
                                f"has {n_vertices}; paint the actor's template.ply")
         if getattr(mesh.visual, "kind", None) != "vertex":
@@ -75,9 +83,9 @@ def read_region(path: Path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
         mask = np.asarray(mesh.visual.vertex_colors, np.float64)[:, :3].mean(1) / 255.0
         idx = np.flatnonzero(mask > 0)
         values = mask[idx]
-    elif suffix == ".json" and path.read_text().lstrip().startswith("{"):
+    elif suffix == ".json" and read_text_file(path, "region file").lstrip().startswith("{"):
         try:
-            d = json.loads(path.read_text())
+            d = json.loads(read_text_file(path, "region file"))
             idx = np.asarray(d["vertices"], np.int64).reshape(-1)
             values = np.asarray(d.get("weights", np.ones(len(idx))), np.float64).reshape(-1)
             unknown = set(d) - {"vertices", "weights"}

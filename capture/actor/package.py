@@ -81,8 +81,32 @@ class Actor:
         return list(self.metadata["shape_names"])
 
 
+def _bad(name: str, what: str, fix: str = "retrain the actor or restore its package from a backup") -> CaptureError:
+    return CaptureError(f"actor '{name}': {what}; {fix}")
+
+
+def validate_metadata(meta: object, name: str, meta_path: Path) -> dict:
+    """The checks every reader of ``actor.json`` relies on (an object, format, name, model, shape names)."""
+    if not isinstance(meta, dict):
+        raise _bad(name, f"{meta_path} holds a JSON {type(meta).__name__}, not an object")
+    version = meta.get("format_version")
+    if version != FORMAT_VERSION:
+        raise CaptureError(f"actor '{name}' has package format {version}; this build reads format "
+                           f"{FORMAT_VERSION}: retrain the actor with this version")
+    if not isinstance(meta.get("model"), dict):
+        raise _bad(name, f"{meta_path} lacks its model settings ('model' must be an object)")
+    names = meta.get("shape_names")
+    if not (isinstance(names, list) and len(names) >= 2 and all(isinstance(n, str) for n in names)):
+        raise _bad(name, f"{meta_path}: shape_names must be a list of the shape names (neutral first), got "
+                         f"{str(names)[:60]}")
+    if not isinstance(meta.get("name", ""), str):
+        raise _bad(name, f"{meta_path}: name must be a string")
+    meta.setdefault("name", Path(meta_path).parent.name)
+    return meta
+
+
 def read_metadata(name: str) -> dict:
-    """``actor.json`` of actor ``name``; a one-line error when the actor does not exist."""
+    """``actor.json`` of actor ``name``, checked (:func:`validate_metadata`); one line when it cannot be used."""
     path = actor_dir(name)
     meta_path = path / ACTOR_JSON
     if not meta_path.is_file():
@@ -91,34 +115,79 @@ def read_metadata(name: str) -> dict:
         raise CaptureError(f"unknown actor '{name}': no {meta_path}{hint}; train it with "
                            f"'capture actor train {name} --shapes DIR' or give the actor's folder")
     try:
-        meta = json.loads(meta_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise CaptureError(f"actor '{name}' has an unreadable {meta_path}: {exc}") from None
-    version = meta.get("format_version")
-    if version != FORMAT_VERSION:
-        raise CaptureError(f"actor '{name}' has package format {version}; this build reads format "
-                           f"{FORMAT_VERSION}: retrain the actor with this version")
-    return meta
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        detail = str(exc).splitlines()[0][:120] if str(exc) else exc.__class__.__name__
+        raise CaptureError(f"actor '{name}' has an unreadable {meta_path} ({detail}); retrain the actor or restore "
+                           f"its package") from None
+    return validate_metadata(meta, name, meta_path)
 
 
 def load_actor(name: str, device: str | torch.device = "cpu") -> Actor:
-    """Load actor ``name`` (see :func:`actor_dir`) with its frozen model on ``device``."""
+    """Load actor ``name`` (see :func:`actor_dir`) with its frozen model on ``device``.
+
+    Every file of the package is checked: weights present, readable, finite and of the model's shapes;
+    a template with triangles, finite, of the model's vertex count and a face's size.
+    """
+    from capture.io.meshes import check_face_size
+
     path = actor_dir(name)
     meta = read_metadata(name)
-    config = AIMConfig.from_dict(meta["model"])
-    tensors = load_file(str(path / WEIGHTS), device=str(device))
-    model = AnatomicalFaceModel(config).to(device)
-    state = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
-    model.thickness_edits.extend(e.to(device) for e in edits_from_state(state))  # an edited actor's edits
-    model.load_state_dict(state)
+    try:
+        config = AIMConfig.from_dict(meta["model"])
+    except (TypeError, ValueError) as exc:
+        raise _bad(name, f"its actor.json has an invalid model ({str(exc).splitlines()[0][:100]})") from None
+    wpath = path / WEIGHTS
+    if not wpath.is_file():
+        raise _bad(name, f"{wpath} is missing")
+    try:
+        tensors = load_file(str(wpath), device="cpu")
+    except Exception as exc:  # safetensors raises its own error type for truncated or foreign files
+        raise _bad(name, f"{wpath} is damaged or not a safetensors file ({str(exc).splitlines()[0][:80]})") from None
+    for k in ("jaw_rot6d", "jaw_t"):
+        if k not in tensors:
+            raise _bad(name, f"{wpath} lacks '{k}'")
+    bad = [k for k, v in tensors.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise _bad(name, f"{wpath} holds NaN or infinite values (in {bad[0]})")
+    n_exp = len(meta["shape_names"]) - 1
+    if tensors["jaw_rot6d"].shape != (n_exp, 6) or tensors["jaw_t"].shape != (n_exp, 3):
+        raise _bad(name, f"{wpath} has jaw transforms of shape {tuple(tensors['jaw_rot6d'].shape)} for "
+                         f"{n_exp} expressions")
+    try:
+        model = AnatomicalFaceModel(config)
+        state = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
+        model.thickness_edits.extend(edits_from_state(state))  # an edited actor's edits
+        model.load_state_dict(state)
+    except (RuntimeError, KeyError, ValueError, TypeError) as exc:
+        first = str(exc).replace("\n", " ").replace("\t", " ")[:160]
+        raise _bad(name, f"{wpath} does not match the model in actor.json (width {config.width}): "
+                         f"{first}") from None
+    model = model.to(device)
     model.eval().requires_grad_(False)
-    template = trimesh.load(path / TEMPLATE, process=False, maintain_order=True, force="mesh")
-    return Actor(path=path, metadata=meta, config=config, model=model, jaw_rot6d=tensors["jaw_rot6d"],
-                 jaw_t=tensors["jaw_t"], template=template)
+    tpath = path / TEMPLATE
+    if not tpath.is_file():
+        raise _bad(name, f"{tpath} is missing")
+    try:
+        template = trimesh.load(tpath, process=False, maintain_order=True, force="mesh")
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise _bad(name, f"{tpath} is not a readable mesh ({exc.__class__.__name__})") from None
+    if (not isinstance(template, trimesh.Trimesh) or len(template.faces) == 0
+            or not np.isfinite(np.asarray(template.vertices)).all()):
+        raise _bad(name, f"{tpath} has no triangles or non-finite vertices")
+    nv = meta.get("n_vertices")
+    if isinstance(nv, int) and nv != len(template.vertices):
+        raise _bad(name, f"{tpath} has {len(template.vertices)} vertices but actor.json says {nv}")
+    check_face_size(template.vertices, "mm", f"actor '{name}': its template", flag="the actor's units")
+    return Actor(path=path, metadata=meta, config=config, model=model,
+                 jaw_rot6d=tensors["jaw_rot6d"].to(device), jaw_t=tensors["jaw_t"].to(device), template=template)
 
 
 def list_actors(root: Path | None = None) -> list[dict]:
-    """Metadata of every finished actor under ``root`` (default :func:`actors_root`), by name."""
+    """Metadata of every finished actor under ``root`` (default :func:`actors_root`), by name.
+
+    An actor whose ``actor.json`` cannot be read is listed with ``error`` (one bad actor does not break the list).
+    """
     root = root or actors_root()
     if not root.is_dir():
         return []
@@ -126,9 +195,9 @@ def list_actors(root: Path | None = None) -> list[dict]:
     for p in sorted(root.iterdir()):
         if is_actor(p):
             try:
-                meta = json.loads((p / ACTOR_JSON).read_text())
-            except (OSError, json.JSONDecodeError):
-                meta = {"name": p.name, "error": "unreadable actor.json"}
+                meta = read_metadata(str(p))
+            except CaptureError as exc:
+                meta = {"name": p.name, "error": str(exc)}
             meta["path"] = str(p)
             out.append(meta)
         elif (p / TRAINING_DIR).is_dir():

@@ -27,7 +27,7 @@ import trimesh
 import capture
 from capture.actor.package import TRAINING_DIR, actor_dir, is_actor, remove_actor, save_actor
 from capture.io.atomic import atomic_path, write_bytes, write_json
-from capture.io.errors import CaptureError, Interrupted
+from capture.io.errors import CaptureError, read_text_file, Interrupted
 from capture.io.signals import sigterm_as_interrupt
 from capture.io.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
 from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
@@ -77,7 +77,7 @@ def read_vertex_list(path: Path, n_vertices: int, what: str) -> np.ndarray:
     """A vertex selection file: JSON list of indices, or whitespace/comma separated integers."""
     if not path.is_file():
         raise CaptureError(f"{what} file not found: {path}")
-    text = path.read_text()
+    text = read_text_file(path, f"{what} file")
     try:
         values = json.loads(text) if text.lstrip().startswith("[") else [int(v) for v in text.replace(",", " ").split()]
         idx = np.asarray(values, dtype=np.int64).reshape(-1)

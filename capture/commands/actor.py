@@ -110,11 +110,15 @@ def list_command() -> None:
         return
     table = Table("actor", "shapes", "vertices", "mean error mm", "max error mm", "trained", "path")
     for a in actors:
-        q = a.get("quality", {})
-        name = a.get("name", "?") + (f" (edit of {a['edit']['source_actor']})" if a.get("edit") else "")
-        table.add_row(name, str(len(a.get("shape_names", []))) if "shape_names" in a else "-",
-                      str(a.get("n_vertices", "-")), f"{q['mean_mm']:.3f}" if "mean_mm" in q else "-",
-                      f"{q['max_mm']:.3f}" if "max_mm" in q else "-", a.get("created", a.get("status", "-")), a["path"])
+        if a.get("error"):
+            table.add_row(a.get("name", "?"), "-", "-", "-", "-", "unusable: " + a["error"], a["path"])
+            continue
+        q = a.get("quality") if isinstance(a.get("quality"), dict) else {}
+        edit = a.get("edit") if isinstance(a.get("edit"), dict) else {}
+        name = str(a.get("name", "?")) + (f" (edit of {edit.get('source_actor', '?')})" if edit else "")
+        table.add_row(name, str(len(a["shape_names"])) if isinstance(a.get("shape_names"), list) else "-",
+                      str(a.get("n_vertices", "-")), _fmt(q.get("mean_mm")), _fmt(q.get("max_mm")),
+                      str(a.get("created", a.get("status", "-"))), a["path"])
     console.print(table)
 
 
@@ -134,10 +138,25 @@ def show_command(
     _show(actor, Console())
 
 
-def _show(actor, console: Console) -> None:
-    from capture.actor.package import actor_dir, read_metadata
+def _fmt(v) -> str:
+    return f"{v:.3f}" if isinstance(v, (int, float)) else "-"
 
-    meta = read_metadata(str(actor))
+
+def _show(actor, console: Console) -> None:
+    from capture.actor.package import read_metadata
+
+    try:
+        _show_metadata(actor, read_metadata(str(actor)), console)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        what = (f"lacks '{exc.args[0]}'" if isinstance(exc, KeyError)
+                else f"has a malformed entry ({exc.__class__.__name__})")
+        raise CaptureError(f"actor '{actor}': its actor.json {what}; retrain the actor or restore its "
+                           f"package") from None
+
+
+def _show_metadata(actor, meta: dict, console: Console) -> None:
+    from capture.actor.package import actor_dir
+
     q, tr, con = meta["quality"], meta["training"], meta["anatomy_constraints"]
     console.print(f"[bold]{meta['name']}[/]  {meta['n_vertices']} vertices, {len(meta['shape_names'])} shapes "
                   f"(neutral '{meta['neutral']}'), units {meta['units']}, {actor_dir(str(actor))}")

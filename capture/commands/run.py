@@ -32,7 +32,7 @@ def run_command(
     device: str = typer.Option("cpu", "--device", help="Torch device of the fit (cpu, cuda)."),
     window: int = typer.Option(30, "--window", help="Frames per fitting window."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace the run in --out (another take's, "
-                                   "or redo this one from scratch)."),
+                                   "or redo this one from scratch); the old run stays until the new one succeeded."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
     """Capture a take: detect landmarks, fit the actor, export meshes, USD, parameters and an overlay.

@@ -69,8 +69,10 @@ class LandmarkTrack:
 
     @classmethod
     def load_npz(cls, path: str | Path) -> "LandmarkTrack":
-        with np.load(path, allow_pickle=False) as z:
-            g = {k: z[k] for k in z.files}
+        from capture.io.arrays import load_npz
+
+        g = load_npz(path, "landmark track", "delete it (or rerun with --overwrite) to detect again",
+                     required=("detector", "frame_index", "points", "face_found", "crops", "fps", "image_size"))
         return cls(detector=str(g["detector"]), frame_index=g["frame_index"], points=g["points"],
                    confidence=g.get("confidence"), sigma_px=g.get("sigma_px"), presence=g.get("presence"),
                    face_found=g["face_found"], crops=g["crops"], fps=float(g["fps"]),
@@ -121,8 +123,13 @@ def _write_segment(path: Path, track: LandmarkTrack) -> None:
 
 def _read_segment(path: Path, detector: str, count: int) -> list[FrameLandmarks] | None:
     try:
+        from capture.io.arrays import npz_members
+
+        npz_members(path, max_bytes=(count + 8) * 64 * 64 + (1 << 20))  # headers only: never loaded whole if crafted
         with np.load(path, allow_pickle=False) as z:
             g = {k: z[k] for k in z.files}
+        if not {"frame_index", "points", "face_found", "crops"} <= set(g):
+            return None
     except Exception:
         return None  # unreadable: detect again
     if g["points"].ndim != 3 or g["points"].shape[1:] != (count, 2):

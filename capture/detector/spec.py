@@ -240,6 +240,10 @@ def _show(v: Any) -> str:
 # parsing
 
 
+#: Largest input side a spec may declare: one 4096 x 4096 float32 RGB tensor is 192 MiB already.
+MAX_INPUT_SIDE = 4096
+
+
 def _parse_input(r: _Reader) -> InputSpec:
     r.check_keys(("name", "layout", "size", "color", "dtype"), ("scale", "mean", "std"))
     name = r.str_("name")
@@ -248,6 +252,8 @@ def _parse_input(r: _Reader) -> InputSpec:
     if (not isinstance(size, list) or len(size) != 2
             or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
         r.fail(r.field("size"), "[width, height], two positive integers", size)
+    if max(size) > MAX_INPUT_SIDE:
+        r.fail(r.field("size"), f"at most {MAX_INPUT_SIDE} pixels a side (a landmark model's input is a crop)", size)
     color = r.str_("color", tuple(COLORS))
     dtype = r.str_("dtype", DTYPES)
     channels = COLORS[color]
@@ -277,7 +283,7 @@ def _read_json(path: Path, what: str) -> dict:
         raise CaptureError(f"{what} {path} does not exist; put the JSON spec beside the ONNX file "
                            f"(same stem) or pass its path")
     try:
-        return json.loads(path.read_text())
+        return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CaptureError(f"{what} {path} is not valid JSON ({exc}); fix the file") from None
 

@@ -310,12 +310,18 @@ def _load_cached(cache_dir: Path | None, start: int, key: str) -> dict | None:
     if not (npz.is_file() and pt.is_file()):
         return None
     try:
+        from capture.io.arrays import npz_members
+
+        npz_members(npz, max_bytes=64 << 20)  # headers only: a crafted archive is never loaded whole
         with np.load(npz, allow_pickle=False) as z:
             if str(z["key"]) != key:
                 return None
-        return torch.load(pt, map_location="cpu", weights_only=True)
-    except (OSError, ValueError, KeyError, RuntimeError):
-        return None  # unreadable: solve again
+        if pt.stat().st_size > 256 << 20:
+            return None
+        state = torch.load(pt, map_location="cpu", weights_only=True)
+        return state if isinstance(state, dict) and all(isinstance(v, torch.Tensor) for v in state.values()) else None
+    except Exception:  # OSError, ValueError, UnpicklingError, zip errors: damaged or crafted, solve again
+        return None
 
 
 def _save_cached(cache_dir: Path, start: int, key: str, state: dict, raw: dict) -> None:

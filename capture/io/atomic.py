@@ -9,9 +9,20 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
+
+#: Marks the temporary siblings of atomic writes (``.<stem>.~tmp<8 random chars><suffix>``): a run that was
+#: killed (``kill -9``) leaves them, and the next run on the folder removes them (:func:`is_temp_name`).
+TEMP_MARK = ".~tmp"
+_TEMP_RE = re.compile(r"^\..*" + re.escape(TEMP_MARK) + r"[A-Za-z0-9_]{8}(\.[^/]*)?$")
+
+
+def is_temp_name(name: str) -> bool:
+    """True for the name of a temporary sibling made by :func:`atomic_path`."""
+    return bool(_TEMP_RE.match(name))
 
 
 @contextlib.contextmanager
@@ -25,7 +36,7 @@ def atomic_path(target: str | os.PathLike, suffix: str | None = None) -> Iterato
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     sfx = suffix if suffix is not None else "".join(target.suffixes) or ".tmp"
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=sfx, dir=target.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}{TEMP_MARK}", suffix=sfx, dir=target.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:

@@ -18,6 +18,27 @@ MESH_SUFFIXES = (".obj", ".ply")
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 
 
+#: Plausible largest extent (mm) of a face or head mesh; outside it the stated units are wrong.
+FACE_SIZE_RANGE_MM = (40.0, 1000.0)
+
+
+def check_face_size(vertices: np.ndarray, units: str, what: str, flag: str = "--units") -> float:
+    """The largest bounding-box side (mm) of ``vertices`` (V, 3) mm; one line when it is not a face's size.
+
+    The message names the unit that would make it plausible (millimetre meshes read with ``--units m``
+    give a 186 m face).
+    """
+    extent = float(np.ptp(np.asarray(vertices, np.float64).reshape(-1, 3), axis=0).max())
+    lo, hi = FACE_SIZE_RANGE_MM
+    if lo <= extent <= hi:
+        return extent
+    scale = UNITS_TO_MM.get(units, 1.0)
+    fits = [u for u, s in UNITS_TO_MM.items() if u != units and lo <= extent / scale * s <= hi]
+    hint = f" (as {fits[0]} it would be {extent / scale * UNITS_TO_MM[fits[0]]:.0f} mm)" if fits else ""
+    raise CaptureError(f"{what} is {extent:.4g} mm across with {flag} {units}, but a face is {lo:g}-{hi:g} mm{hint}; "
+                       f"check {flag}")
+
+
 def units_scale(units: str) -> float:
     """Millimetres per unit of ``units`` (mm, cm, m, in)."""
     try:
@@ -95,6 +116,7 @@ def load_shape_dir(directory: str | Path, neutral: str | None = None, units: str
     scale = units_scale(units)
     meshes = [load_mesh(p, scale, "shape") for p in files]
     ref = meshes[0]
+    check_face_size(ref.vertices, units, f"the neutral {files[0].name}")
     for path, mesh in zip(files[1:], meshes[1:]):
         if len(mesh.vertices) != len(ref.vertices) or len(mesh.faces) != len(ref.faces):
             raise CaptureError(

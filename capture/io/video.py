@@ -54,6 +54,9 @@ class VideoReader:
         import cv2
 
         self.path = Path(path)
+        if self.path.is_dir():
+            raise CaptureError(f"video {self.path} is a folder, not a video file; give the take's video file "
+                               f"(a folder of images can be made into one with ffmpeg -i 'frame_%06d.png' take.mp4)")
         if not self.path.is_file():
             raise CaptureError(f"video {self.path} does not exist; check the path")
         cap = cv2.VideoCapture(str(self.path))

@@ -18,7 +18,7 @@ from capture.io.errors import CaptureError, Interrupted
 from capture.run.inputs import check_device, check_window, resolve_fit_settings
 from capture.run.report import error_stats, frame_table
 from capture.run.stages import export_stage, fit_frames, iter_fits, run_fit_cached
-from capture.run.store import claim_run_dir, digest, file_sha256, write_run_json
+from capture.run.store import digest, open_run_dir, file_sha256, write_run_json
 from capture.io.signals import sigterm_as_interrupt
 
 FIT3D_FORMATS = ("obj", "usd", "npz")
@@ -53,7 +53,7 @@ class Fit3dConfig:
 
 def load_mesh_sequence(folder: Path, units: str, n_vertices: int) -> tuple[list[Path], np.ndarray]:
     """The meshes of ``folder`` sorted by name -> (files, vertices (T, V, 3) mm); topology checked."""
-    from capture.io.meshes import MESH_SUFFIXES, load_mesh, units_scale
+    from capture.io.meshes import MESH_SUFFIXES, check_face_size, load_mesh, units_scale
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -68,6 +68,8 @@ def load_mesh_sequence(folder: Path, units: str, n_vertices: int) -> tuple[list[
         if len(m.vertices) != n_vertices:
             raise CaptureError(f"mesh {p.name} has {len(m.vertices)} vertices but the actor's template has "
                                f"{n_vertices}; fit3d needs meshes registered to the actor's topology")
+        if not verts:
+            check_face_size(m.vertices, units, f"mesh {p.name}")
         verts.append(np.asarray(m.vertices))
     return files, np.stack(verts)
 
@@ -97,49 +99,51 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
     weights_sha = file_sha256(Path(actor.path) / WEIGHTS)
     resolved = {**cfg.to_dict(), "out": str(out), "fit_settings": settings.to_dict()}
     fingerprints = {"meshes": take_id, "actor_weights_sha256": weights_sha}
-    claim_run_dir(out, take_id, label, cfg.overwrite)
-    write_run_json(out, take_id, label, resolved, fingerprints, "running")
+    with open_run_dir(out, take_id, label, cfg.overwrite, what="fit3d") as folder:
+        out = folder.work
+        write_run_json(out, take_id, label, resolved, fingerprints, "running")
 
-    key = {"kind": "fit3d", "fit_settings": settings.to_dict(), "window": cfg.window, "overlap": cfg.overlap,
-           "device": cfg.device, "actor_weights_sha256": weights_sha, "meshes": take_id}
-    fdir = out / "fit" / digest(key)[:16]
-    log: list[dict] = []
-    stage = "fit"
-    with sigterm_as_interrupt():
-        try:
-            how = lambda cache: WindowedFit(settings, cfg.window, cfg.overlap, cache, cfg.device, cfg.threads)  # noqa: E731
-            run_fit_cached(fdir, key, len(meshes), lambda cache: fit_meshes(actor, meshes, how(cache)), "fit3d",
-                           cfg.progress, log)
-            frames = fit_frames(fdir)
-            stage = "export"
-            ctx = ExportContext(faces=np.asarray(actor.template.faces), fps=cfg.fps, image_size=(1, 1), camera=None,
-                                frame_count=len(frames), options=ExportOptions(),
-                                source=f"capture fit3d {Path(cfg.meshes).name}, actor {actor.name}",
-                                **rig_and_features(actor, cfg.formats))
-            export_stage(fdir, ctx, cfg.formats, {"fit": digest(key), "formats": list(cfg.formats), "fps": cfg.fps,
-                                                  "options": ExportOptions().to_dict()},
-                         out, log=log, progress=cfg.progress)
-        except KeyboardInterrupt:
-            raise Interrupted(f"interrupted during {stage}; finished work is kept in {out}: run the same "
-                              f"command to resume") from None
-    from capture.run.take import FrameSummary, _finite
+        key = {"kind": "fit3d", "fit_settings": settings.to_dict(), "window": cfg.window, "overlap": cfg.overlap,
+               "device": cfg.device, "actor_weights_sha256": weights_sha, "meshes": take_id}
+        fdir = out / "fit" / digest(key)[:16]
+        log: list[dict] = []
+        stage = "fit"
+        with sigterm_as_interrupt():
+            try:
+                how = lambda cache: WindowedFit(settings, cfg.window, cfg.overlap, cache, cfg.device, cfg.threads)  # noqa: E731
+                run_fit_cached(fdir, key, len(meshes), lambda cache: fit_meshes(actor, meshes, how(cache)), "fit3d",
+                               cfg.progress, log)
+                frames = fit_frames(fdir)
+                stage = "export"
+                ctx = ExportContext(faces=np.asarray(actor.template.faces), fps=cfg.fps, image_size=(1, 1), camera=None,
+                                    frame_count=len(frames), options=ExportOptions(),
+                                    source=f"capture fit3d {Path(cfg.meshes).name}, actor {actor.name}",
+                                    **rig_and_features(actor, cfg.formats))
+                export_stage(fdir, ctx, cfg.formats, {"fit": digest(key), "formats": list(cfg.formats), "fps": cfg.fps,
+                                                      "options": ExportOptions().to_dict()},
+                             out, log=log, progress=cfg.progress)
+            except KeyboardInterrupt:
+                raise Interrupted(f"interrupted during {stage}; finished work is kept in {out}: run the same "
+                                  f"command to resume") from None
+        from capture.run.take import FrameSummary, _finite
 
-    fits = [FrameSummary(int(f.frame), str(f.status), _finite(getattr(f, "error3d_mm", None)))
-            for f in iter_fits(fdir)]
-    errors = [f.error for f in fits]
-    rows, skipped = frame_table(fits, "error3d_mm", errors, {})
-    for r, p in zip(rows, files):
-        r["mesh"] = p.name
-    report = base_report("capture fit3d", out, resolved, log, t_start)
-    report.update({"meshes": {"folder": str(cfg.meshes), "count": len(files), "identity": take_id, "units": cfg.units},
-                   "actor": {"name": actor.name, "path": str(actor.path)}, "camera": None,
-                   "frames": {"requested": len(files), "first": 0, "last": len(files) - 1,
-                              "fitted": len(rows) - len(skipped), "skipped": len(skipped)},
-                   "error": {"kind": "3D vertex error", "unit": "mm", **error_stats(errors)},
-                   "skipped_frames": skipped, "per_frame": rows, "notes": []})
-    finish_report(report, rows, "error3d_mm", out)
-    html_report(out, report, fdir, actor, rows, "error3d_mm", "mm", cfg.fps)
-    if len(fits) != len(files):
-        raise CaptureError(f"only {len(fits)} of {len(files)} meshes were fitted; see report.json and rerun")
-    write_run_json(out, take_id, label, resolved, fingerprints, "done")
-    return report
+        fits = [FrameSummary(int(f.frame), str(f.status), _finite(getattr(f, "error3d_mm", None)))
+                for f in iter_fits(fdir)]
+        errors = [f.error for f in fits]
+        rows, skipped = frame_table(fits, "error3d_mm", errors, {})
+        for r, p in zip(rows, files):
+            r["mesh"] = p.name
+        report = base_report("capture fit3d", folder.out, resolved, log, t_start)
+        report.update({"meshes": {"folder": str(cfg.meshes), "count": len(files), "identity": take_id, "units": cfg.units},
+                       "actor": {"name": actor.name, "path": str(actor.path)}, "camera": None,
+                       "frames": {"requested": len(files), "first": 0, "last": len(files) - 1,
+                                  "fitted": len(rows) - len(skipped), "skipped": len(skipped)},
+                       "error": {"kind": "3D vertex error", "unit": "mm", **error_stats(errors)},
+                       "skipped_frames": skipped, "per_frame": rows, "notes": []})
+        finish_report(report, rows, "error3d_mm", out)
+        html_report(out, report, fdir, actor, rows, "error3d_mm", "mm", cfg.fps)
+        if len(fits) != len(files):
+            raise CaptureError(f"only {len(fits)} of {len(files)} meshes were fitted; see report.json and rerun")
+        write_run_json(out, take_id, label, resolved, fingerprints, "done")
+        folder.commit()
+        return report

@@ -134,6 +134,8 @@ def resolve_camera(path: Path | None, width: int, height: int) -> ResolvedCamera
         return ResolvedCamera(cam, "default", f"no --camera: DEFAULT GUESS ({cam.describe()}); calibrate for "
                                               f"accurate results")
     path = Path(path)
+    if path.is_dir():
+        raise CaptureError(f"camera file {path} is a folder; give the camera file (.json, .yaml or .xml) with --camera")
     if not path.is_file():
         raise CaptureError(f"camera file {path} does not exist; check --camera")
     cam = read_camera(path)

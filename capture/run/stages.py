@@ -220,10 +220,16 @@ def export_stage(fit_dir: Path, context: Any, formats: Sequence[str], key: dict,
         _log(log, {"stage": "export", "status": "skipped", "seconds": time.perf_counter() - t0,
                    "files": len(state["files"])})
         return state_path
-    same_fit = state is not None and state.get("key") == key
+    # The per-frame files on disk were all made with `key` only if a finished export of `key` made them, or an
+    # interrupted one that started from such files; the key is recorded as "key" only after the files it
+    # describes are written (a resumed export after a settings change rewrites every frame).
+    state = state or {}
+    files_key = state.get("key") if state.get("status") == "done" else state.get("files_key")
+    same_fit = files_key == key
     context = replace(context, options=replace(context.options, overwrite=overwrite or not same_fit))
-    previous = set((state or {}).get("files", [])) | set((state or {}).get("previous_files", []))
-    write_json(state_path, {"key": key, "status": "running", "files": [], "previous_files": sorted(previous)})
+    previous = set(state.get("files", [])) | set(state.get("previous_files", []))
+    write_json(state_path, {"status": "running", "writing": key, "files_key": key if same_fit and not overwrite
+                            else None, "files": [], "previous_files": sorted(previous)})
 
     frames = fit_frames(fit_dir)
     want_images = images is not None and any(EXPORTERS[f].needs_image for f in formats)

@@ -5,6 +5,12 @@ fingerprints of the inputs; it is written before any work, so a folder that hold
 recognised and refused without ``--overwrite``. Frame fits are stored as plain arrays in chunks
 (``fit/<key>/frames_<first>.npz``, listed by ``fit/<key>/done.json``) so that exports can be redone
 without fitting again, and memory stays flat in the take's length.
+
+:func:`open_run_dir` claims a folder for a run: it creates and locks it (:mod:`capture.io.outdir`),
+finishes a swap cut short, removes temporary files of killed runs, refuses symbolic links among the
+run's entries, and decides where the run is built: in the folder itself, or -- when ``--overwrite``
+replaces a run -- in ``OUT/.overwrite/``, swapped in by :meth:`RunFolder.commit` only once the new
+run has succeeded (a journal, ``OUT/.swap.json``, lets the next run finish a swap that was cut short).
 """
 
 from __future__ import annotations
@@ -12,20 +18,22 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+import re
 import shutil
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from capture.io.atomic import atomic_path, write_json
+from capture.io.atomic import atomic_path, is_temp_name, write_json
 from capture.io.errors import CaptureError
 
 RUN_JSON = "run.json"
 RUN_FORMAT = "capture-run"
 #: What a run folder may hold (removed by ``--overwrite`` when the folder holds another take).
-OWNED = ("run.json", "report.json", "export.json", "landmarks.npz", "detections", "fit", "meshes",
-         "params.npz", "take.usd", "take.usda", "take.usdc", "overlay.mp4")
+OWNED = ("run.json", "report.json", "report.html", "export.json", "landmarks.npz", "detections", "fit", "meshes",
+         "params.npz", "curves.csv", "take.usd", "take.usda", "take.usdc", "overlay.mp4")
 #: Files ``capture batch`` keeps in a take's run folder (its log and state); they may be there before
 #: the folder is claimed (a take that failed on its input) and are not removed by ``--overwrite``.
 BATCH_FILES = ("batch_take.json", "batch_take.log")
@@ -58,10 +66,12 @@ def array_digest(*arrays: np.ndarray | None) -> str:
 
 
 def read_json(path: Path) -> dict | None:
+    """The JSON object in ``path``, or None when it is missing, unreadable or not an object."""
     try:
-        return json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError):
+        obj = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
         return None
+    return obj if isinstance(obj, dict) else None
 
 
 def claim_run_dir(out: Path, take_id: str, take_label: str, overwrite: bool) -> None:
@@ -69,40 +79,207 @@ def claim_run_dir(out: Path, take_id: str, take_label: str, overwrite: bool) -> 
 
     A folder whose ``run.json`` names another take is refused without ``overwrite``; with it, the
     previous run's files (:data:`OWNED`) are removed. A non-empty folder that is not a run folder is
-    always refused (nothing of the user's is deleted).
+    always refused (nothing of the user's is deleted). ``capture run``, ``fit3d`` and ``retarget`` use
+    :func:`open_run_dir` instead, which never deletes before the new run has succeeded.
     """
     out = Path(out)
+    if _claim_mode(out, take_id, overwrite) == "replace":
+        _remove_run(out, out)
+
+
+def _claim_mode(out: Path, take_id: str, overwrite: bool) -> str:
+    """``"here"`` (build in ``out``) or ``"replace"`` (a run to be replaced); one line when refused."""
     if out.exists() and not out.is_dir():
         raise CaptureError(f"--out {out} is a file; give a folder")
     # Hidden files (such as the temporary sibling of an atomic write in progress by a concurrent task of
-    # the same take) and the batch's files do not make a folder "not empty".
+    # the same take, the lock, a staged replacement) and the batch's files do not make a folder "not empty".
     if not out.exists() or not any(p.name not in BATCH_FILES and not p.name.startswith(".") for p in out.iterdir()):
-        return
+        return "here"
     prev = read_json(out / RUN_JSON)
-    if prev is None or prev.get("format") != RUN_FORMAT:
+    if not isinstance(prev, dict) or prev.get("format") != RUN_FORMAT:
         raise CaptureError(f"output folder {out} is not empty and holds no run ({RUN_JSON}); choose an empty "
                            f"or new folder with --out")
     same = prev.get("take_id") == take_id
     if same and not overwrite:
-        return
+        return "here"
     if not same and not overwrite:
         raise CaptureError(f"output folder {out} holds the run of another take ({prev.get('take_label', '?')}); "
                            f"choose another --out or pass --overwrite to replace it")
-    exported = read_json(out / "export.json") or {}
-    for rel in list(exported.get("files", [])) + list(exported.get("previous_files", [])):
-        p = out / rel
-        if p.is_file() and p.resolve().is_relative_to(out.resolve()):
+    return "replace"
+
+
+def _export_files(folder: Path) -> list[str]:
+    exported = read_json(folder / "export.json")
+    if not isinstance(exported, dict):
+        return []
+    return [str(f) for f in list(exported.get("files", [])) + list(exported.get("previous_files", []))]
+
+
+def _remove_run(out: Path, folder: Path, extra: tuple[str, ...] = ()) -> None:
+    """Remove the run files in ``folder`` (its export's files, :data:`OWNED`, ``extra``); a user's own files stay."""
+    root = folder.resolve()
+    for rel in _export_files(folder):
+        p = folder / rel
+        if p.is_file() and not p.is_symlink() and p.resolve().is_relative_to(root):
             p.unlink()
-    for name in OWNED:
-        p = out / name
-        if p.is_dir():
+    for name in OWNED + extra:
+        p = folder / name
+        if p.is_symlink():
+            p.unlink()
+        elif p.is_dir():
+            if name == "meshes":  # the export's files are gone; what is left there is the user's
+                if not any(p.iterdir()):
+                    p.rmdir()
+                continue
             shutil.rmtree(p)
         elif p.exists():
             p.unlink()
 
 
+FRAME_FILE = re.compile(r"^frame_\d{6}\.(obj|ply)$")  # the per-frame files an export writes in meshes/
+STAGING = ".overwrite"       # a replacing run is built here, inside --out, and swapped in on success
+SWAP_JOURNAL = ".swap.json"  # written before the swap; a swap cut short is finished by the next run
+#: Hidden entries of a run folder that :func:`open_run_dir` checks and cleans besides :data:`OWNED`.
+HIDDEN = (STAGING,)
+
+
+@dataclasses.dataclass
+class RunFolder:
+    """A claimed, locked output folder. Stages write to ``work``; :meth:`commit` makes it ``out``.
+
+    ``work`` is ``out`` itself, or ``out/.overwrite`` when ``--overwrite`` replaces a run: the previous
+    run stays complete until the new one has succeeded (:meth:`commit` swaps them).
+    """
+
+    out: Path
+    work: Path
+    lock: Any
+    extra: tuple[str, ...] = ()
+
+    @property
+    def replacing(self) -> bool:
+        return self.work != self.out
+
+    def commit(self) -> None:
+        """Swap a staged replacement into ``out`` (no-op when building in place)."""
+        if self.replacing:
+            entries = sorted(p.name for p in self.work.iterdir() if not is_temp_name(p.name))
+            write_json(self.out / SWAP_JOURNAL, {"staging": STAGING, "entries": entries,
+                                                 "old_files": _export_files(self.out)})
+            finish_swap(self.out, self.extra)
+
+    def close(self) -> None:
+        self.lock.release()
+
+    def __enter__(self) -> "RunFolder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def finish_swap(out: Path, extra: tuple[str, ...] = ()) -> None:
+    """Finish a swap described by ``out/.swap.json`` (idempotent: a swap cut short is finished here)."""
+    out = Path(out)
+    journal = read_json(out / SWAP_JOURNAL)
+    if not isinstance(journal, dict):
+        return
+    staging = out / STAGING
+    old_files = [str(f) for f in journal.get("old_files", [])]
+    root = out.resolve()
+    for rel in old_files:
+        p = out / rel
+        if p.is_file() and not p.is_symlink() and p.resolve().is_relative_to(root):
+            p.unlink()
+    meshes = out / "meshes"
+    if "meshes" in journal.get("entries", []) and meshes.is_dir() and not meshes.is_symlink():
+        for f in meshes.iterdir():  # frame files of the old run that no export listed (one cut short)
+            if FRAME_FILE.match(f.name) and f.is_file() and not (staging / "meshes" / f.name).exists():
+                f.unlink()
+    for name in journal.get("entries", []):
+        src, dst = staging / name, out / name
+        if not (src.exists() or src.is_symlink()):
+            continue  # moved already
+        if name == "meshes" and dst.is_dir() and not dst.is_symlink():
+            for f in src.iterdir():     # merge: a user's own files in meshes/ stay
+                os.replace(f, dst / f.name)
+            src.rmdir()
+            continue
+        if dst.is_dir() and not dst.is_symlink():
+            shutil.rmtree(dst)
+        elif dst.exists() or dst.is_symlink():
+            dst.unlink()
+        os.replace(src, dst)
+    for name in OWNED + extra:  # entries of the old run the new one does not have (e.g. another format)
+        if name in journal.get("entries", []) or name == "meshes":
+            continue
+        p = out / name
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        elif p.exists() or p.is_symlink():
+            p.unlink()
+    if meshes.is_dir() and "meshes" not in journal.get("entries", []):
+        for f in meshes.iterdir():
+            if FRAME_FILE.match(f.name) and f.is_file():
+                f.unlink()
+    if meshes.is_dir() and "meshes" not in journal.get("entries", []) and not any(meshes.iterdir()):
+        meshes.rmdir()
+    if staging.exists():
+        shutil.rmtree(staging)
+    (out / SWAP_JOURNAL).unlink()
+
+
+def open_run_dir(out: Path, take_id: str, take_label: str, overwrite: bool, what: str = "run",
+                 extra: tuple[str, ...] = ()) -> RunFolder:
+    """Create, lock, tidy and claim ``out`` for this take; where to build (see :class:`RunFolder`).
+
+    Under the lock: a swap cut short is finished, temporary files of killed runs are removed, and a
+    run folder with symbolic links among its entries is refused. ``extra`` names further entries the
+    command owns (retarget's part folders).
+    """
+    from capture.io.outdir import OutLock, check_no_links, clean_temp_files, make_out_dir
+
+    out = make_out_dir(Path(out))
+    lock = OutLock(out, what).acquire()
+    try:
+        finish_swap(out, extra)
+        owned = OWNED + extra + HIDDEN
+        check_no_links(out, owned)
+        clean_temp_files(out, owned)
+        mode = _claim_mode(out, take_id, overwrite)
+        work = out
+        staging = out / STAGING
+        if mode == "replace":
+            work = staging
+            prev = read_json(staging / RUN_JSON)
+            if staging.exists() and not (isinstance(prev, dict) and prev.get("take_id") == take_id):
+                shutil.rmtree(staging)  # a replacement of another take, cut short
+            staging.mkdir(exist_ok=True)
+        elif staging.exists():
+            shutil.rmtree(staging)      # a replacement that was given up (rerun without --overwrite)
+        return RunFolder(out, work, lock, extra)
+    except BaseException:
+        lock.release()
+        raise
+
+
+def _comparable(run: dict) -> Any:
+    """``run.json`` content as plain data without the output folder (a moved run folder is the same run)."""
+    d = json.loads(json.dumps(run, default=str))
+    if isinstance(d.get("settings"), dict):
+        d["settings"].pop("out", None)
+    return d
+
+
 def write_run_json(out: Path, take_id: str, take_label: str, settings: dict, fingerprints: dict,
                    status: str) -> Path:
+    """Write ``run.json``; a rerun of a finished run with the same settings and inputs leaves it as it is."""
+    prev = read_json(Path(out) / RUN_JSON)
+    same = {"format": RUN_FORMAT, "version": 1, "take_id": take_id, "take_label": take_label,
+            "settings": settings, "fingerprints": fingerprints}
+    if (status == "running" and prev is not None and prev.get("status") == "done"
+            and _comparable({k: prev.get(k) for k in same}) == _comparable(same)):
+        return Path(out) / RUN_JSON
     return write_json(Path(out) / RUN_JSON, {"format": RUN_FORMAT, "version": 1, "take_id": take_id,
                                              "take_label": take_label, "status": status, "settings": settings,
                                              "fingerprints": fingerprints})
@@ -140,9 +317,14 @@ def _to_numpy(v):
 
 def load_frame_fits(path: Path, cls) -> list[Any]:
     """The frame fits saved by :func:`save_frame_fits`, as instances of the dataclass ``cls``."""
-    with np.load(path, allow_pickle=False) as z:
-        g = {k: z[k] for k in z.files}
-    n = len(next(iter(g.values())))
+    from capture.io.arrays import load_npz
+
+    g = load_npz(path, "fit cache", "delete it (or rerun with --overwrite) to fit again")
+    n = len(next(iter(g.values()))) if g else 0
+    names = {f.name for f in dataclasses.fields(cls)}
+    if not n or any(k not in names or v.ndim == 0 or len(v) != n for k, v in g.items()):
+        raise CaptureError(f"fit cache {path} does not hold frame fits of one length; delete it (or rerun with "
+                           f"--overwrite) to fit again")
     out = []
     for i in range(n):
         kw = {}

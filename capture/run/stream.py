@@ -294,15 +294,29 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         landmarks.put(_END)
 
     def fit():
+        from capture.run.checks import landmark_problems
+
         torch.set_num_threads(max(1, int(cfg.threads)))   # once, for this stage
         frame_map: list[int] = []
         found_any = [False]
 
+        problem: list[str] = []
+
         def rows():
             for r in landmarks:
                 frame_map.append(int(r.frame_index))
-                found_any[0] |= bool(r.face_found)
-                yield r.points, _frame_weights(r.points, r.confidence), bool(r.face_found)
+                found = bool(r.face_found)
+                if found:   # the plausibility check of capture.run.checks, frame by frame
+                    why = landmark_problems(np.asarray(r.points)[None],
+                                            None if r.confidence is None else np.asarray(r.confidence)[None])[0]
+                    if why:
+                        found = False
+                        problem[:1] = problem[:1] or [why]
+                found_any[0] |= found
+                yield r.points, _frame_weights(r.points, r.confidence), found
+            if not found_any[0] and problem:
+                raise CaptureError(f"detector {det.name} found a face but no frame can be fitted ({problem[0]}); "
+                                   f"check the detector's output decoding in its spec (docs/detector_spec.md)")
             if not found_any[0]:
                 raise CaptureError(f"detector {det.name} found no face in any of the {len(frame_map)} requested "
                                    f"frames; check the video, --frames and the detector (its spec's "

@@ -29,7 +29,7 @@ from capture.io.errors import CaptureError, Interrupted
 from capture.run.inputs import RunConfig, resolve_inputs
 from capture.run.report import error_stats, frame_table, versions, write_report
 from capture.run.stages import LANDMARKS, detect_stage, export_stage, fit_frames, fit_stage, iter_fits
-from capture.run.store import claim_run_dir, digest, write_run_json
+from capture.run.store import digest, open_run_dir, write_run_json
 from capture.io.signals import sigterm_as_interrupt
 
 
@@ -114,10 +114,7 @@ def check_complete(requested: list[int], fitted: list[int]) -> None:
 
 def run_take(cfg: RunConfig) -> dict:
     """Run the whole take; returns the report (also written to ``OUT/report.json``)."""
-    from capture.detector import LandmarkTrack
-    from capture.export import ExportContext
     from calib.camera_io import camera_to_dict
-    from capture.io.video import VideoReader
 
     t_start = time.perf_counter()
     inputs = resolve_inputs(cfg)
@@ -129,7 +126,21 @@ def run_take(cfg: RunConfig) -> dict:
     fingerprints = {"video": inputs.video_id, "actor_weights_sha256": inputs.actor_weights_sha256,
                     "embedding_sha256": inputs.embedding_sha256, "detector": det.identity(),
                     "camera": camera_to_dict(cam)}
-    claim_run_dir(out, inputs.video_id, label, cfg.overwrite)
+    with open_run_dir(out, inputs.video_id, label, cfg.overwrite) as folder:
+        report = _run_in(folder, cfg, inputs, label, settings, fingerprints, t_start)
+    return report
+
+
+def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerprints: dict, t_start: float) -> dict:
+    """The stages and the report of :func:`run_take`, built in ``folder.work`` and committed to ``folder.out``."""
+    from capture.detector import LandmarkTrack
+    from capture.export import ExportContext
+    from calib.camera_io import camera_to_dict
+    from capture.io.video import VideoReader
+    from capture.run.checks import check_detections, check_head_depths
+
+    out, info, det = folder.work, inputs.video_info, inputs.detector
+    cam = inputs.camera.camera
     write_run_json(out, inputs.video_id, label, settings, fingerprints, "running")
 
     log: list[dict] = []
@@ -160,18 +171,27 @@ def run_take(cfg: RunConfig) -> dict:
                                   lambda r: Detection(r.points, r.confidence, bool(r.face_found)), cfg.progress)
                 log[:] = res.log
                 track, fit_dir = res.track, res.fit_dir
+                check_reasons = check_detections(track, det.name)
                 frames = fit_frames(fit_dir)
                 dets = detections_of(track)
             else:
                 if not log:
                     detect_stage(inputs, out, log=log, progress=cfg.progress)
                 track = LandmarkTrack.load_npz(out / LANDMARKS)
+                check_reasons = check_detections(track, det.name)
                 if not track.face_found.any():
                     raise CaptureError(f"detector {det.name} found no face in any of the {len(track)} requested "
                                        f"frames; check the video, --frames and the detector (its spec's "
                                        f"crop.first_frame)")
                 stage = "fit"
-                fit_dir = fit_stage(inputs, track, out, log=log, progress=cfg.progress)
+                try:
+                    fit_dir = fit_stage(inputs, track, out, log=log, progress=cfg.progress)
+                except ValueError as exc:
+                    if "PnP" not in str(exc):
+                        raise
+                    raise CaptureError(f"no frame's landmarks give a head pose through camera "
+                                       f"{inputs.camera.source} (PnP failed on every frame): check the camera file "
+                                       f"and the detector's confidences") from None
                 frames = fit_frames(fit_dir)
                 stage = "export"
                 dets = detections_of(track)
@@ -186,13 +206,16 @@ def run_take(cfg: RunConfig) -> dict:
             raise _interrupted(out, stage) from None
 
     requested = list(range(*inputs.frame_range)) if cfg.frames is not None else [int(i) for i in track.frame_index]
-    reasons = skip_reasons(track, det.name)
+    reasons = {**skip_reasons(track, det.name), **check_reasons}
     fits = summarise_fit(fit_dir, track)
     errors = [f.error for f in fits]
     rows, skipped = frame_table(fits, "reprojection_rms_px", errors, reasons)
     for r, f in zip(rows, fits):
         r["reprojection_rms_all_px"] = f.error_all
-    report = base_report("capture run", out, settings, log, t_start)
+    report = base_report("capture run", folder.out, settings, log, t_start)
+    for st in log:  # a replacing run is built in folder.work and moved to folder.out
+        if isinstance(st.get("fit_dir"), str):
+            st["fit_dir"] = st["fit_dir"].replace(str(folder.work), str(folder.out), 1)
     report.update({
         "video": {"path": str(cfg.video), "identity": inputs.video_id, "frame_count": info.frame_count,
                   "fps": info.fps, "size": [info.width, info.height], "rotation_deg": info.rotation_deg},
@@ -205,11 +228,15 @@ def run_take(cfg: RunConfig) -> dict:
                   **error_stats(errors),
                   "all_landmarks": error_stats([r["reprojection_rms_all_px"] for r in rows])},
         "skipped_frames": skipped, "per_frame": rows, "notes": inputs.notes})
+    implausible = check_head_depths(fit_dir, rows)
     finish_report(report, rows, "reprojection_rms_px", out)
     html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
                 video=Path(cfg.video), camera=cam, image_size=(info.width, info.height))
     check_complete(requested, frames)
+    if implausible:
+        raise CaptureError(implausible)
     write_run_json(out, inputs.video_id, label, settings, fingerprints, "done")
+    folder.commit()
     return report
 
 

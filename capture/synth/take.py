@@ -38,7 +38,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from calib.camera import Camera, default_camera
-from calib.camera_io import read_camera, write_camera
+from calib.camera_io import check_camera_plausible, read_camera, write_camera
 from capture.actor.package import load_actor
 from capture.io.atomic import atomic_path, write_bytes, write_json
 from capture.io.errors import CaptureError
@@ -126,6 +126,9 @@ def _check_config(cfg: SynthConfig) -> None:
         raise CaptureError(f"--crf must be in 0..51, got {cfg.crf}")
     if cfg.size is not None and (cfg.size[0] < 16 or cfg.size[1] < 16 or cfg.size[0] % 2 or cfg.size[1] % 2):
         raise CaptureError(f"--size must be even and at least 16x16 (H.264), got {cfg.size[0]}x{cfg.size[1]}")
+    if cfg.size is not None and max(cfg.size) > 8192:
+        raise CaptureError(f"--size {cfg.size[0]}x{cfg.size[1]} is larger than 8192 pixels a side (8K); give a smaller "
+                           f"frame size")
 
 
 def _prepare_out(out: Path, overwrite: bool) -> None:
@@ -155,6 +158,7 @@ def resolve_camera(cfg: SynthConfig) -> Camera:
     if cfg.distortion is not None:
         cam = Camera(cam.K, np.asarray(cfg.distortion, dtype=np.float64), cam.image_size, cam.rms,
                      f"{cam.provenance}; distortion {list(cfg.distortion)} from capture synth", cam.is_default)
+        check_camera_plausible(cam, f"--distortion {','.join(f'{v:g}' for v in cfg.distortion)}")
     if cam.width % 2 or cam.height % 2:
         raise CaptureError(f"frame size {cam.width}x{cam.height} must be even for H.264")
     return cam

@@ -1,0 +1,78 @@
+"""Cached arrays read back safely: NPZ archives checked before a byte of array data is loaded.
+
+The caches of a run (detections, fitted windows, frame fits) and the arrays of an actor package are
+plain NPZ archives written by ``np.savez`` (stored, not compressed). A damaged or crafted file must
+neither run code (no pickle: object arrays are refused) nor blow up memory: every member's header is
+read first (dtype and shape), and the archive is refused when a member is compressed, holds objects,
+declares more bytes than it stores, or when the total exceeds ``max_bytes``. Each problem is one
+:class:`~capture.io.errors.CaptureError` line naming the file and saying what to do.
+"""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from capture.io.errors import CaptureError
+
+#: Default ceiling of one cached archive's arrays (bytes); callers pass a tighter one when they know the shapes.
+DEFAULT_MAX_BYTES = 2 << 30
+
+
+def npz_members(path: Path, max_bytes: int = DEFAULT_MAX_BYTES) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
+    """The ``{name: (dtype, shape)}`` of an NPZ, read from the member headers only.
+
+    Raises ValueError (with the reason) for anything :func:`load_npz` must refuse.
+    """
+    size = os.stat(path).st_size
+    if size > max_bytes + (1 << 20):
+        raise ValueError(f"{size} bytes on disk, more than the {max_bytes} expected at most")
+    out: dict[str, tuple[np.dtype, tuple[int, ...]]] = {}
+    total = 0
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            if not info.filename.endswith(".npy"):
+                raise ValueError(f"member {info.filename!r} is not an array")
+            if info.compress_type != zipfile.ZIP_STORED:
+                raise ValueError(f"member {info.filename!r} is compressed (this program never writes compressed caches)")
+            with zf.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                if version == (1, 0):
+                    shape, _fortran, dtype = np.lib.format.read_array_header_1_0(fh, max_header_size=10000)
+                elif version in ((2, 0), (3, 0)):
+                    shape, _fortran, dtype = np.lib.format.read_array_header_2_0(fh, max_header_size=10000)
+                else:
+                    raise ValueError(f"member {info.filename!r} has an unknown .npy version {version}")
+            if dtype.hasobject:
+                raise ValueError(f"member {info.filename!r} holds Python objects (pickle), which are never loaded")
+            nbytes = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+            if nbytes > info.file_size:
+                raise ValueError(f"member {info.filename!r} declares {nbytes} bytes but stores {info.file_size}")
+            total += nbytes
+            if total > max_bytes:
+                raise ValueError(f"its arrays hold more than {max_bytes} bytes")
+            out[info.filename[:-4]] = (dtype, tuple(int(s) for s in shape))
+    return out
+
+
+def load_npz(path: str | os.PathLike, what: str, fix: str, max_bytes: int = DEFAULT_MAX_BYTES,
+             required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """All arrays of the NPZ at ``path`` after :func:`npz_members` accepted it.
+
+    ``what`` names the file for the user ("fit cache", "actor constraints"); ``fix`` says what to do
+    ("delete it or rerun with --overwrite"). ``required`` member names must be present.
+    """
+    path = Path(path)
+    try:
+        members = npz_members(path, max_bytes)
+        missing = [k for k in required if k not in members]
+        if missing:
+            raise ValueError(f"it lacks {', '.join(missing)}")
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        reason = str(exc).splitlines()[0][:200] if str(exc).strip() else exc.__class__.__name__
+        raise CaptureError(f"{what} {path} is damaged or not written by this program ({reason}); {fix}") from None
