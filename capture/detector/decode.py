@@ -192,7 +192,8 @@ def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou: float, mode: str = "har
         # NMSBoxes takes (x, y, w, h); scale unit boxes up so its float32 / integer-free maths is not coarse
         k = 1000.0
         xywh = np.stack([b[:, 0], b[:, 1], b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]], axis=1) * k
-        keep = cv2.dnn.NMSBoxes(xywh.tolist(), s.tolist(), float(s.min()) - 1.0, float(iou))
+        ranks = (s - s.min() + 1.0).tolist()   # NMSBoxes wants scores >= its threshold >= 0; only order matters
+        keep = cv2.dnn.NMSBoxes(xywh.tolist(), ranks, 0.0, float(iou))
         keep = np.asarray(keep, dtype=np.int64).reshape(-1)
         keep = keep[np.argsort(-s[keep], kind="stable")]
         return b[keep], s[keep]
