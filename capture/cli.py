@@ -15,6 +15,7 @@ from calib.cli import calibrate_command
 from capture.commands.actor import actor_app
 from capture.commands.batch import batch_command
 from capture.commands.demo import demo_command
+from capture.commands.detect import detect_command
 from capture.commands.fit3d import fit3d_command
 from capture.commands.retarget import retarget_command
 from capture.commands.run import run_command
@@ -32,6 +33,7 @@ app.add_typer(actor_app, name="actor")
 app.command("calibrate")(calibrate_command)
 app.command("synth")(synth_command)
 app.command("run")(run_command)
+app.command("detect")(detect_command)
 app.command("fit3d")(fit3d_command)
 app.command("demo")(demo_command)
 app.command("retarget")(retarget_command)

@@ -25,10 +25,13 @@ RUN_JSON = "run.json"
 RUN_FORMAT = "capture-run"
 #: What a run folder may hold (removed by ``--overwrite`` when the folder holds another take).
 OWNED = ("run.json", "report.json", "export.json", "landmarks.npz", "detections", "fit", "meshes",
-         "params.npz", "take.usd", "take.usda", "take.usdc", "overlay.mp4")
+         "params.npz", "take.usd", "take.usda", "take.usdc", "overlay.mp4", "detect")
 #: Files ``capture batch`` keeps in a take's run folder (its log and state); they may be there before
 #: the folder is claimed (a take that failed on its input) and are not removed by ``--overwrite``.
 BATCH_FILES = ("batch_take.json", "batch_take.log")
+#: What ``capture detect`` writes into the same folder (the shared detection cache and its outputs); a
+#: folder holding only these is claimed like an empty one.
+DETECT_FILES = ("detections", "detect")
 
 
 def digest(obj: Any) -> str:
@@ -76,7 +79,8 @@ def claim_run_dir(out: Path, take_id: str, take_label: str, overwrite: bool) -> 
         raise CaptureError(f"--out {out} is a file; give a folder")
     # Hidden files (such as the temporary sibling of an atomic write in progress by a concurrent task of
     # the same take) and the batch's files do not make a folder "not empty".
-    if not out.exists() or not any(p.name not in BATCH_FILES and not p.name.startswith(".") for p in out.iterdir()):
+    if not out.exists() or not any(p.name not in BATCH_FILES + DETECT_FILES and not p.name.startswith(".")
+                                   for p in out.iterdir()):
         return
     prev = read_json(out / RUN_JSON)
     if prev is None or prev.get("format") != RUN_FORMAT:
