@@ -16,6 +16,7 @@ from capture.commands.actor import actor_app
 from capture.commands.batch import batch_command
 from capture.commands.demo import demo_command
 from capture.commands.detect import detect_command
+from capture.commands.embed import embed_command
 from capture.commands.fit3d import fit3d_command
 from capture.commands.retarget import retarget_command
 from capture.commands.run import run_command
@@ -29,6 +30,7 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+actor_app.command("embed")(embed_command)
 app.add_typer(actor_app, name="actor")
 app.command("calibrate")(calibrate_command)
 app.command("synth")(synth_command)

@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from capture.actor.package import actor_dir, list_actors, read_metadata
+from capture.actor.package import list_actors, read_metadata, resolve_actor
 from capture.io.errors import CaptureError
 
 actor_app = typer.Typer(help="Learn actors from registered blendshape meshes and inspect them.",
@@ -101,19 +101,24 @@ def edit_command(
 
 @actor_app.command("list")
 def list_command() -> None:
-    """List the actors under $CAPTURE_ACTORS (or ./actors)."""
+    """List the actors under $CAPTURE_ACTORS (or ./actors) and the bundled ones (e.g. demo)."""
     actors = list_actors()
     console = Console()
     if not actors:
         console.print("no actors found (train one with 'capture actor train A --shapes DIR')")
         return
-    table = Table("actor", "shapes", "vertices", "mean error mm", "max error mm", "trained", "path")
+    table = Table("actor", "shapes", "vertices", "mean error mm", "max error mm", "trained", "landmarks", "path")
     for a in actors:
         q = a.get("quality", {})
-        name = a.get("name", "?") + (f" (edit of {a['edit']['source_actor']})" if a.get("edit") else "")
+        name = a.get("call_name", a.get("name", "?")) + (f" (edit of {a['edit']['source_actor']})" if a.get("edit") else "")
+        if a.get("bundled"):
+            name += " (bundled)"
+        lm_dir = Path(a["path"]) / "landmarks"
+        landmarks = ", ".join(sorted(p.stem for p in lm_dir.glob("*.json") if "." not in p.stem)) or "-"
         table.add_row(name, str(len(a.get("shape_names", []))) if "shape_names" in a else "-",
                       str(a.get("n_vertices", "-")), f"{q['mean_mm']:.3f}" if "mean_mm" in q else "-",
-                      f"{q['max_mm']:.3f}" if "max_mm" in q else "-", a.get("created", a.get("status", "-")), a["path"])
+                      f"{q['max_mm']:.3f}" if "max_mm" in q else "-", a.get("created", a.get("status", "-")),
+                      landmarks, a["path"])
     console.print(table)
 
 
@@ -135,7 +140,7 @@ def _show(actor, console: Console) -> None:
     meta = read_metadata(str(actor))
     q, tr, con = meta["quality"], meta["training"], meta["anatomy_constraints"]
     console.print(f"[bold]{meta['name']}[/]  {meta['n_vertices']} vertices, {len(meta['shape_names'])} shapes "
-                  f"(neutral '{meta['neutral']}'), units {meta['units']}, {actor_dir(str(actor))}")
+                  f"(neutral '{meta['neutral']}'), units {meta['units']}, {resolve_actor(str(actor))}")
     from capture.actor.edit import edit_summary
 
     if edit_summary(meta):
