@@ -117,9 +117,9 @@ def test_embed_command_with_mesh_units_and_pairs_and_errors(tmp_path, monkeypatc
             "--units", "cm", "--pairs", str(tmp_path / "pairs.txt")]
     assert main(args) == 0
     out = capsys.readouterr().out
-    assert "pair residual after the similarity: RMS 0.000 mm" in out
+    assert "pair residual after the similarity: RMS 0.000 mm" in out and "landmarks of 'mesh11'" in out
     emb = read_embedding(tmp_path / "actors" / "demo", "mesh11", template, 11)
-    np.testing.assert_allclose(embedded_points(emb, template), pts, atol=1e-6)
+    np.testing.assert_allclose(embedded_points(emb, template), pts, atol=1e-4)   # the PLY holds float32
     report = json.loads((tmp_path / "actors" / "demo" / "landmarks" / "mesh11.report.json").read_text())
     assert report["transform"]["scale"] == pytest.approx(10.0)
     for bad, msg in [(["--points", str(tmp_path / "pairs.txt")], "give exactly one of --vertices"),
