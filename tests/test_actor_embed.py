@@ -121,7 +121,7 @@ def test_embed_command_with_mesh_units_and_pairs_and_errors(tmp_path, monkeypatc
     emb = read_embedding(tmp_path / "actors" / "demo", "mesh11", template, 11)
     np.testing.assert_allclose(embedded_points(emb, template), pts, atol=1e-4)   # the PLY holds float32
     report = json.loads((tmp_path / "actors" / "demo" / "landmarks" / "mesh11.report.json").read_text())
-    assert report["transform"]["scale"] == pytest.approx(10.0)
+    assert report["transform"]["scale"] == pytest.approx(1.0, abs=1e-6)   # --units cm did the x10
     for bad, msg in [(["--points", str(tmp_path / "pairs.txt")], "give exactly one of --vertices"),
                      (["--vertices", str(tmp_path / "pairs.txt")], "gives 6 landmarks but detector 'mesh11' has "
                                                                    "landmarks.count = 11")]:
