@@ -244,3 +244,16 @@ def test_nms_hard_is_opencv_and_weighted_blends():
     b, s = nms(boxes, scores, 0.5, "weighted")
     np.testing.assert_allclose(b[0], (0.9 * boxes[0] + 0.8 * boxes[1]) / 1.7)
     np.testing.assert_allclose(b[1], boxes[2])
+
+
+def test_the_documented_corner_to_corner_example():
+    """docs/detector_spec.md 'Which frame?': W = 192, crop 480 px at (640, 360), model value 96.0."""
+    from capture.detector.crop import input_to_frame, output_to_input_px
+
+    crop = Crop(640.0, 360.0, 480.0, 0.0)
+    x = lambda m, frame: input_to_frame(output_to_input_px(np.array([[m, 95.5]]), frame, (192, 192)), crop,
+                                        (192, 192))[0, 0]
+    assert x(96.0, "crop_corner_pixels") == pytest.approx(640.0, abs=1e-9)
+    assert x(96.0 / 192, "crop_unit") == pytest.approx(640.0, abs=1e-9)
+    assert x(96.0, "crop_pixels") == pytest.approx(641.25, abs=1e-9)
+    assert x(0.0, "crop_corner_pixels") == pytest.approx(400.0, abs=1e-9)
