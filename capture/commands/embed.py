@@ -25,6 +25,11 @@ def embed_command(
                                          "(3 or more) for the alignment; default automatic (ICP)."),
     units: str = typer.Option("mm", "--units", help="Units of --points / --mesh: mm, cm, m or in."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing embedding for this detector."),
+    refine: Optional[Path] = typer.Option(None, "--refine", help="A take of the actor: refine the embedding on a "
+                                          "few well-spread frames (alone: refine the existing embedding)."),
+    camera: Optional[Path] = typer.Option(None, "--camera", help="With --refine: the take's camera file "
+                                          "(default: the documented guess)."),
+    refine_frames: int = typer.Option(8, "--refine-frames", help="With --refine: how many frames."),
 ) -> None:
     """Write A/landmarks/<detector>.json: where each landmark of the detector sits on A's template."""
     from rich.console import Console
@@ -34,7 +39,8 @@ def embed_command(
     console = Console(soft_wrap=True)
     out, report = run_embed(EmbedConfig(actor=actor, detector=detector, vertices=vertices, triangles=triangles,
                                         topology=topology, points=points, mesh=mesh, pairs=pairs, units=units,
-                                        overwrite=overwrite), say=lambda m: console.print(m, highlight=False))
+                                        overwrite=overwrite, refine=refine, camera=camera,
+                                        refine_frames=refine_frames), say=lambda m: console.print(m, highlight=False))
     for line in report_lines(report):
         console.print(line, highlight=False)
     console.print(f"wrote {out}", highlight=False)

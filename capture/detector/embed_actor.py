@@ -27,6 +27,10 @@ class EmbedConfig:
     pairs: Path | None = None          # with mesh: landmark/vertex pairs (default: automatic)
     units: str = "mm"                  # of points / mesh
     overwrite: bool = False
+    refine: Path | None = None         # a take of the actor: refine the embedding on it
+    camera: Path | None = None         # the take's camera (default: the documented guess)
+    refine_frames: int = 8
+    cache: Path | None = None          # detection cache folder (default ./runs/<take stem>, shared with capture run)
 
 
 def run_embed(cfg: EmbedConfig, say=print) -> tuple[Path, dict]:
@@ -40,9 +44,10 @@ def run_embed(cfg: EmbedConfig, say=print) -> tuple[Path, dict]:
     from capture.io.atomic import write_json
 
     given = [k for k in ("vertices", "triangles", "points", "mesh") if getattr(cfg, k) is not None]
-    if len(given) != 1:
+    if len(given) > 1 or (not given and cfg.refine is None):
         raise CaptureError("give exactly one of --vertices, --triangles, --points or --mesh "
-                           f"(got {', '.join('--' + g for g in given) or 'none'})")
+                           f"(got {', '.join('--' + g for g in given) or 'none'}), or --refine TAKE alone to "
+                           f"refine the actor's existing embedding")
     if cfg.topology is not None and cfg.triangles is None:
         raise CaptureError("--topology goes with --triangles (the mesh whose triangles they index)")
     if cfg.pairs is not None and cfg.mesh is None:
@@ -55,12 +60,17 @@ def run_embed(cfg: EmbedConfig, say=print) -> tuple[Path, dict]:
     if note:
         say(note)
     out = embedding_path(path, name)
-    if out.exists() and not cfg.overwrite:
+    if out.exists() and not cfg.overwrite and given:
         raise CaptureError(f"actor {path.name} already has an embedding for detector '{name}' ({out}); pass "
                            f"--overwrite to replace it")
     template = trimesh.load(path / TEMPLATE, process=False, maintain_order=True, force="mesh")
 
-    if cfg.vertices is not None:
+    if not given:
+        from capture.detector.embedding import read_embedding
+
+        emb = read_embedding(path, name, template, count)
+        report = {"method": f"the existing embedding ({emb.source or 'no source noted'})"}
+    elif cfg.vertices is not None:
         ids = E.read_ints(cfg.vertices)
         _check_count(len(ids), count, name, cfg.vertices)
         emb = embedding_from_vertices(template, ids, name, f"vertex ids from {Path(cfg.vertices).name}")
@@ -88,10 +98,51 @@ def run_embed(cfg: EmbedConfig, say=print) -> tuple[Path, dict]:
         pairs = E.read_pairs(cfg.pairs) if cfg.pairs is not None else None
         emb, report = E.embedding_from_canonical_mesh(template, pts, name, pairs,
                                                       f"canonical mesh {Path(cfg.mesh).name}")
+    if cfg.refine is not None:
+        emb, report["refine"] = _refine(cfg, path, detector, emb, template, say)
     write_embedding(path, emb, template)
     report = {"detector": name, "count": count, "actor": str(path), **report}
     write_json(out.with_name(out.stem + REPORT_SUFFIX), report)
     return out, report
+
+
+def _refine(cfg: EmbedConfig, actor_path: Path, detector, emb, template, say) -> tuple:
+    """Detect on the take (cached), pick well-spread frames and refine the embedding on them."""
+    import numpy as np
+
+    from capture.actor.package import load_actor
+    from capture.detector.pipeline import detect_video
+    from capture.detector.refine import RefineSettings, refine_embedding, select_frames
+    from capture.io.video import open_video
+    from capture.run.inputs import resolve_camera
+
+    take = Path(cfg.refine)
+    if not take.is_file():
+        raise CaptureError(f"--refine take {take} does not exist; check the path")
+    if cfg.refine_frames < 2:
+        raise CaptureError(f"--refine-frames must be at least 2, got {cfg.refine_frames}")
+    with open_video(take) as reader:
+        info = reader.info
+    cam = resolve_camera(cfg.camera, info.width, info.height)
+    say(cam.note)
+    cache = Path(cfg.cache) if cfg.cache is not None else Path("runs") / take.stem
+    track = detect_video(take, detector, cache_dir=cache, progress=False,
+                         query_points=None if detector.spec.kind != "query" else _points(emb, template))
+    w = (np.isfinite(track.points).all(axis=2).astype(np.float64) if track.confidence is None
+         else np.nan_to_num(track.confidence))
+    sel = select_frames(track.points, w, track.face_found, cfg.refine_frames)
+    say(f"refining on frames {', '.join(map(str, sel))} of {take.name}")
+    actor = load_actor(str(actor_path))
+    res = refine_embedding(actor.model, template, emb, track.points[sel], w[sel], cam.camera.K, cam.camera.dist,
+                           RefineSettings(frames=cfg.refine_frames), frames=sel, say=say)
+    rep = res.report() | {"take": str(take), "camera": cam.source}
+    return res.embedding, rep
+
+
+def _points(emb, template):
+    from capture.detector.embedding import embedded_points
+
+    return embedded_points(emb, template)
 
 
 def _check_count(n: int, count: int, name: str, src: Path) -> None:
@@ -115,6 +166,11 @@ def report_lines(report: dict) -> list[str]:
             s = report[key]
             lines.append(f"{what}: median {s['median_mm']:.3f} mm, p95 {s['p95_mm']:.3f} mm, max {s['max_mm']:.3f} mm "
                          f"(worst: " + ", ".join(f"{w['landmark']} {w['mm']:.2f}" for w in s["worst"][:3]) + ")")
+    if "refine" in report:
+        r = report["refine"]
+        lines.append(f"refined on {len(r['frames'])} frames: reprojection RMS {r['reprojection_before_rms_px']:.3f} px "
+                     f"before, {r['reprojection_after_rms_px']:.3f} px after; landmarks moved median "
+                     f"{r['moved_mm']['median']:.2f} mm, max {r['moved_mm']['max']:.2f} mm")
     if "warning" in report:
         lines.append("WARNING: " + report["warning"])
     return lines
