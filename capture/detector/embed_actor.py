@@ -171,6 +171,11 @@ def report_lines(report: dict) -> list[str]:
         lines.append(f"refined on {len(r['frames'])} frames: reprojection RMS {r['reprojection_before_rms_px']:.3f} px "
                      f"before, {r['reprojection_after_rms_px']:.3f} px after; landmarks moved median "
                      f"{r['moved_mm']['median']:.2f} mm, max {r['moved_mm']['max']:.2f} mm")
+        few = r.get("landmarks_seen_in_fewer_than_2_frames", [])
+        if few:
+            lines.append(f"{len(few)} landmarks were confident in fewer than 2 of the frames and are barely refined "
+                         f"(occluded or unreliable there): " + ", ".join(map(str, few[:10]))
+                         + (" ..." if len(few) > 10 else ""))
     if "warning" in report:
         lines.append("WARNING: " + report["warning"])
     return lines

@@ -8,7 +8,9 @@ well-spread frames of the actor (:func:`select_frames`), the refinement solves j
   blend coefficient per expression (the actor's model, :func:`models.fit.pose_face`), and
 * each landmark's position on the template surface: an offset in the tangent plane of its start,
 
-minimising the confidence-weighted squared reprojection error (px) plus ``reg`` x the squared
+minimising the confidence-weighted squared reprojection error (px; landmarks below ``min_confident``
+count as unseen, and a landmark unseen in every frame keeps its start: the report lists those seen in
+fewer than 2 frames) plus ``reg`` x the squared
 distance (mm) of every landmark from its starting position and small priors on the coefficients and
 the jaw. The landmarks' anatomy (neutral, skin weight, expression basis) is re-evaluated by the
 actor's networks at the moving template points, so the gradient sees the face change under them.
@@ -50,13 +52,16 @@ class RefineResult:
     after_rms_px: float
     moved_mm: np.ndarray             # (L,) distance of each landmark from its start
     rounds: list[dict] = field(default_factory=list)
+    seen: np.ndarray | None = None   # (L,) in how many of the frames each landmark was confident
 
     def report(self) -> dict:
         m = self.moved_mm
         return {"frames": self.frames, "reprojection_before_rms_px": self.before_rms_px,
                 "reprojection_after_rms_px": self.after_rms_px,
                 "moved_mm": {"median": float(np.median(m)), "p95": float(np.percentile(m, 95)),
-                             "max": float(m.max())}, "rounds": self.rounds}
+                             "max": float(m.max())}, "rounds": self.rounds,
+                "landmarks_seen_in_fewer_than_2_frames": (
+                    [] if self.seen is None else [int(i) for i in np.flatnonzero(self.seen < 2)])}
 
 
 def select_frames(points: np.ndarray, weights: np.ndarray, found: np.ndarray, n: int,
@@ -293,4 +298,4 @@ def refine_embedding(model, template, emb: LandmarkEmbedding, points2d: np.ndarr
     src = (emb.source + "; " if emb.source else "") + f"refined on {len(keep)} frames"
     out = LandmarkEmbedding(emb.detector, cur.face_index, cur.barycentric, src)
     used = [int(frames[k]) if frames is not None else int(k) for k in keep]
-    return RefineResult(out, used, before, after, moved, rounds)
+    return RefineResult(out, used, before, after, moved, rounds, (w > 0).sum(axis=0))
