@@ -103,7 +103,8 @@ def user_copy_of_bundled(path: Path, name: str | None = None) -> tuple[Path, str
     path = Path(path)
     if not is_bundled(path):
         return path, None
-    key = name or (path.name[:-len(BUNDLED_SUFFIX)] if path.name.endswith(BUNDLED_SUFFIX) else path.name)
+    key = name or path.name
+    key = key[:-len(BUNDLED_SUFFIX)] if key.endswith(BUNDLED_SUFFIX) else key
     dest = actors_root() / key
     if is_actor(dest):
         return dest, f"actor '{key}' is bundled (read-only): using your copy {dest}, which shadows it"
@@ -151,7 +152,10 @@ class Actor:
 
 def read_metadata(name: str) -> dict:
     """``actor.json`` of actor ``name`` (see :func:`resolve_actor`); a one-line error when it does not exist."""
-    path = resolve_actor(name)
+    return _metadata_at(resolve_actor(name), name)
+
+
+def _metadata_at(path: Path, name: str) -> dict:
     meta_path = path / ACTOR_JSON
     if not meta_path.is_file():
         hint = (" (its training is unfinished: rerun capture actor train to resume)"
@@ -173,8 +177,8 @@ def read_metadata(name: str) -> dict:
 
 def load_actor(name: str, device: str | torch.device = "cpu") -> Actor:
     """Load actor ``name`` (see :func:`resolve_actor`) with its frozen model on ``device``."""
-    path = resolve_actor(name)
-    meta = read_metadata(name)
+    path = resolve_actor(name)          # resolved once: everything below reads this folder
+    meta = _metadata_at(path, name)
     config = AIMConfig.from_dict(meta["model"])
     tensors = load_file(str(path / WEIGHTS), device=str(device))
     model = AnatomicalFaceModel(config).to(device)

@@ -319,11 +319,10 @@ class Detector:
             dims = [d for d in raw.shape[1:] if d != 1]
             if len(dims) == 2 and s.count == 1:
                 dims = [1] + dims if lo.heatmap.layout == "LHW" else dims + [1]
+            want = f"(N, {s.count}, H, W)" if lo.heatmap.layout == "LHW" else f"(N, H, W, {s.count})"
             if len(dims) != 3 or (dims[0] if lo.heatmap.layout == "LHW" else dims[2]) != s.count:
                 raise CaptureError(f"detector model {label}: heatmap output '{lo.name}' is {fmt_shape(raw.shape)}; "
-                                   f"the spec needs (N, {s.count}, H, W)" if lo.heatmap.layout == "LHW" else
-                                   f"detector model {label}: heatmap output '{lo.name}' is {fmt_shape(raw.shape)}; "
-                                   f"the spec needs (N, H, W, {s.count})")
+                                   f"the spec needs {want}")
             hm = np.asarray(raw, np.float64)[:n].reshape((n,) + tuple(dims))
             if lo.heatmap.layout == "HWL":
                 hm = hm.transpose(0, 3, 1, 2)
