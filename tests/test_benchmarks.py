@@ -116,3 +116,10 @@ def test_bench_scale_quick(tmp_path):
     res = main(["--quick", "--out", str(tmp_path)])
     assert [r["frames"] for r in res["rows"] if r["series"] == "length"] == [6, 12]
     assert all(r["peak_rss_mb"] > 0 for r in res["rows"]) and (tmp_path / "scale.png").is_file()
+
+
+def test_bench_embed_refine_quick():
+    from benchmarks.bench_embed_refine import main
+
+    res = main(["--quick"])
+    assert res["refined_error_mm"]["mean"] < res["start_error_mm"]["mean"]
