@@ -68,10 +68,13 @@ def main(argv=None) -> dict:
     ap.add_argument("--yaw", type=float, default=35.0, help="head yaw range +-deg")
     ap.add_argument("--perturb", type=float, default=3.0, help="start offset along the surface, mm")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rounds", type=int, default=RefineSettings.rounds)
+    ap.add_argument("--iterations", type=int, default=RefineSettings.iterations)
+    ap.add_argument("--reg", type=float, default=RefineSettings.reg)
     ap.add_argument("--quick", action="store_true", help="a small case (CI)")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
-    settings = RefineSettings()
+    settings = RefineSettings(rounds=a.rounds, iterations=a.iterations, reg=a.reg)
     if a.quick:
         a.landmarks, a.frames = 12, 4
         settings = RefineSettings(rounds=2, iterations=10)
@@ -82,7 +85,8 @@ def main(argv=None) -> dict:
     secs = time.perf_counter() - t0
     e0 = np.linalg.norm(embedded_points(start, actor.template) - c_true, axis=1)
     e1 = np.linalg.norm(embedded_points(res.embedding, actor.template) - c_true, axis=1)
-    out = {"landmarks": a.landmarks, "frames": a.frames, "noise_px": a.noise, "yaw_deg": a.yaw,
+    out = {"settings": {"rounds": settings.rounds, "iterations": settings.iterations, "reg": settings.reg},
+           "landmarks": a.landmarks, "frames": a.frames, "noise_px": a.noise, "yaw_deg": a.yaw,
            "start_error_mm": {"mean": float(e0.mean()), "max": float(e0.max())},
            "refined_error_mm": {"mean": float(e1.mean()), "median": float(np.median(e1)),
                                 "p90": float(np.percentile(e1, 90)), "max": float(e1.max()),

@@ -40,7 +40,7 @@ def test_refinement_recovers_an_embedding_perturbed_by_3mm():
     actor = load_actor("demo")
     tm = actor.template
     rng = np.random.default_rng(0)
-    L, J = 40, 8
+    L, J = 30, 8
     front = np.flatnonzero(tm.triangles_center[:, 2] > 60)
     true = LandmarkEmbedding("t", rng.choice(front, L, replace=False), rng.dirichlet([3, 3, 3], L))
     c_true = embedded_points(true, tm)
@@ -55,10 +55,10 @@ def test_refinement_recovers_an_embedding_perturbed_by_3mm():
     assert np.mean(err0) > 2.5
     res = refine_embedding(actor.model, tm, start, obs, np.ones((J, L)), K, np.zeros(0), RefineSettings())
     err = np.linalg.norm(embedded_points(res.embedding, tm) - c_true, axis=1)
-    # the truth to 0.5 mm: on average, and for 90 % of the landmarks (a few seen at grazing angles in
-    # every frame are less constrained)
-    assert np.mean(err) <= 0.5 and np.percentile(err, 90) <= 0.5, (np.mean(err), np.sort(err)[-5:])
-    assert res.after_rms_px < 0.5 * res.before_rms_px and res.after_rms_px < 0.3
+    # the truth to 0.5 mm on average (from 3 mm); with 30 landmarks and 8 frames a few stay less
+    # constrained (the blend coefficients absorb part of their offset): none is worse than 1 mm
+    assert np.mean(err) <= 0.5 and np.median(err) <= 0.4 and err.max() < 1.0, (np.mean(err), np.sort(err)[-5:])
+    assert res.after_rms_px < 0.1 * res.before_rms_px and res.after_rms_px < 0.2   # noise: 0.14 px RMS (2D)
     assert np.allclose(res.moved_mm, np.linalg.norm(embedded_points(res.embedding, tm)
                                                     - embedded_points(start, tm), axis=1))
 

@@ -36,11 +36,11 @@ from capture.io.errors import CaptureError
 @dataclass
 class RefineSettings:
     frames: int = 8                  # well-spread frames used
-    rounds: int = 6                  # joint solves, each followed by a projection onto the surface
-    iterations: int = 30             # Levenberg-Marquardt iterations per solve
+    rounds: int = 10                 # joint solves, each followed by a projection onto the surface
+    iterations: int = 80             # Levenberg-Marquardt iterations per solve (at most)
     reg: float = 0.005               # weight of |c - c_start|^2 (mm^2) per landmark, vs px^2 per observation
     coeff_weight: float = 0.01       # weight of the squared blend coefficients per frame
-    jaw_weight: float = 0.1          # weight of the jaw's distance from rest (rotation 6D, translation cm)
+    jaw_weight: float = 0.1          # weight of the jaw's distance from rest (axis-angle rad, translation cm)
     min_confident: float = 0.5       # landmarks at or above this confidence count in a frame
 
 
@@ -105,8 +105,6 @@ class _Problem:
 
     def __init__(self, model, obs: np.ndarray, w: np.ndarray, K: np.ndarray, dist: np.ndarray,
                  R0: np.ndarray, t0: np.ndarray, s: RefineSettings):
-        from models.rotation import IDENTITY_6D, matrix_to_rot6d
-
         dt = torch.float64
         self.model = model
         self.s = s
@@ -118,9 +116,9 @@ class _Problem:
         self.J = J = obs.shape[0]
         self.E = E = model.config.n_expressions
         self.head_t0 = torch.as_tensor(t0, dtype=dt)
-        self.identity6 = torch.tensor(IDENTITY_6D, dtype=dt)
-        self.frame = torch.cat([matrix_to_rot6d(torch.as_tensor(R0, dtype=dt)).reshape(-1), torch.zeros(J * 3, dtype=dt),
-                                self.identity6.repeat(J), torch.zeros(J * 3 + J * E, dtype=dt)])
+        self.head_R0 = torch.as_tensor(R0, dtype=dt)
+        # rotations are updates R0 exp([w]x) (axis-angle, well conditioned at any step size)
+        self.frame = torch.zeros(J * (3 + 3 + 3 + 3 + E), dtype=dt)
         self.base_c = None
 
     def linearise(self, c: torch.Tensor) -> None:
@@ -157,25 +155,25 @@ class _Problem:
 
     def _unpack(self, th: torch.Tensor):
         J, E = self.J, self.E
-        sizes = [J * 6, J * 3, J * 6, J * 3, J * E]
+        sizes = [J * 3, J * 3, J * 3, J * 3, J * E]
         parts = torch.split(th[:sum(sizes)], sizes)
-        return (parts[0].reshape(J, 6), parts[1].reshape(J, 3), parts[2].reshape(J, 6), parts[3].reshape(J, 3),
+        return (parts[0].reshape(J, 3), parts[1].reshape(J, 3), parts[2].reshape(J, 3), parts[3].reshape(J, 3),
                 parts[4].reshape(J, 1, E))
 
     def residuals(self, th: torch.Tensor, c: torch.Tensor, c0: torch.Tensor | None = None) -> torch.Tensor:
         """The residual vector for frame parameters ``th`` and template points ``c (L, 3)`` mm."""
         from calib.projection import project_points
         from models.fit import pose_face
-        from models.rotation import rot6d_to_matrix
+        from models.fit_lm import so3_exp
 
-        head6, dt_cm, jaw6, jaw_cm, coeff = self._unpack(th)
+        head_w, dt_cm, jaw_w, jaw_cm, coeff = self._unpack(th)
         actor = self.anatomy(c)
-        x = pose_face(actor, rot6d_to_matrix(head6), self.head_t0 + 10.0 * dt_cm, rot6d_to_matrix(jaw6),
+        x = pose_face(actor, self.head_R0 @ so3_exp(head_w), self.head_t0 + 10.0 * dt_cm, so3_exp(jaw_w),
                       10.0 * jaw_cm, coeff)
         uv = project_points(x, self.K, self.dist)
         parts = [((uv - self.obs) * self.sw[..., None]).reshape(-1),
                  np.sqrt(self.s.coeff_weight / self.J) * coeff.reshape(-1),
-                 np.sqrt(self.s.jaw_weight / self.J) * (jaw6 - self.identity6).reshape(-1),
+                 np.sqrt(self.s.jaw_weight / self.J) * jaw_w.reshape(-1),
                  np.sqrt(self.s.jaw_weight / self.J) * jaw_cm.reshape(-1)]
         if c0 is not None:
             parts.append(np.sqrt(self.s.reg / c.shape[0]) * (c - c0).reshape(-1))
