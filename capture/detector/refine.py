@@ -110,7 +110,7 @@ class _Problem:
         self.s = s
         self.obs = torch.as_tensor(obs, dtype=dt)
         self.sw = torch.as_tensor(np.sqrt(w / max(w.sum(), 1e-12)), dtype=dt)   # (J, L)
-        self.K = torch.as_tensor(K, dtype=dt)
+        self.K = torch.tensor(np.array(K, np.float64), dtype=dt)
         d = np.asarray(dist, np.float64).reshape(-1)
         self.dist = torch.as_tensor(d, dtype=dt) if d.size and np.any(d != 0) else None
         self.J = J = obs.shape[0]
