@@ -114,7 +114,7 @@ def list_command() -> None:
         if a.get("bundled"):
             name += " (bundled)"
         lm_dir = Path(a["path"]) / "landmarks"
-        landmarks = ", ".join(sorted(p.stem for p in lm_dir.glob("*.json") if "." not in p.stem)) or "-"
+        landmarks = ", ".join(sorted(p.stem for p in lm_dir.glob("*.json") if not p.name.endswith(".report.json"))) or "-"
         table.add_row(name, str(len(a.get("shape_names", []))) if "shape_names" in a else "-",
                       str(a.get("n_vertices", "-")), f"{q['mean_mm']:.3f}" if "mean_mm" in q else "-",
                       f"{q['max_mm']:.3f}" if "max_mm" in q else "-", a.get("created", a.get("status", "-")),
