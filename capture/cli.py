@@ -21,6 +21,8 @@ from calib.cli import calibrate_command
 from capture.commands.actor import actor_app
 from capture.commands.batch import batch_command
 from capture.commands.demo import demo_command
+from capture.commands.detect import detect_command
+from capture.commands.embed import embed_command
 from capture.commands.fit3d import fit3d_command
 from capture.commands.live import live_command
 from capture.commands.retarget import retarget_command
@@ -35,10 +37,12 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+actor_app.command("embed")(embed_command)
 app.add_typer(actor_app, name="actor")
 app.command("calibrate")(calibrate_command)
 app.command("synth")(synth_command)
 app.command("run")(run_command)
+app.command("detect")(detect_command)
 app.command("fit3d")(fit3d_command)
 app.command("demo")(demo_command)
 app.command("retarget")(retarget_command)

@@ -153,3 +153,10 @@ def test_bench_batch_cluster_quick(tmp_path):
     (c,) = res["contention"]
     assert c["mode"] == "cluster" and c["ratio"] > 0
     assert [(r["takes"], r["nodes"]) for r in c["alone"] + c["busy"]] == [(2, 2), (2, 2)]
+
+
+def test_bench_embed_refine_quick():
+    from benchmarks.bench_embed_refine import main
+
+    res = main(["--quick"])
+    assert res["refined_error_mm"]["mean"] < res["start_error_mm"]["mean"]

@@ -127,7 +127,7 @@ def test_types_and_ranges(tmp_path):
         (("input", "mean"), [0.0, 0.0], "input.mean is [0.0, 0.0]; expected a list of 3 numbers"),
         (("input", "std"), [1.0, 0.0, 1.0], "input.std is [1.0, 0.0, 1.0]; expected non-zero numbers"),
         (("landmarks", "count"), 0, "landmarks.count is 0; expected an integer >= 1"),
-        (("version",), 2, "version is 2; expected 1"),
+        (("version",), 3, "version is 3; expected 1 or 2"),
         (("kind",), "sparse", "kind is \"sparse\"; expected 'dense' or 'query'"),
         (("crop", "first_frame"), "mtcnn", "crop.first_frame is \"mtcnn\""),
         (("crop", "align"), {"left": 0, "right": 7}, "crop.align.right is 7; expected a landmark index below"),

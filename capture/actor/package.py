@@ -14,6 +14,11 @@ Layout (format version 1)::
 
 ``actor.json`` is written last, so a folder without it is an unfinished training. Names resolve
 as DESIGN.md says: a path given as such, else ``$CAPTURE_ACTORS/A``, else ``./actors/A``.
+
+Bundled actors (``capture/data/<name>_actor/``, e.g. ``demo``) are first-class for reading:
+:func:`resolve_actor` falls back to them when the user has no actor of that name, ``list_actors``
+shows them, and a user copy (:func:`user_copy_of_bundled`, made when something is added to one)
+shadows the bundled one. Writers (training, edits) use :func:`actor_dir` and never touch them.
 """
 
 from __future__ import annotations
@@ -54,6 +59,70 @@ def actor_dir(name: str) -> Path:
     if p.is_dir() or len(p.parts) > 1 or name.startswith("."):
         return p
     return actors_root() / name
+
+
+BUNDLED_ROOT = Path(__file__).resolve().parent.parent / "data"
+BUNDLED_SUFFIX = "_actor"
+
+
+def bundled_actors() -> dict[str, Path]:
+    """Bundled actors by name (``demo`` for ``capture/data/demo_actor``); only finished ones."""
+    if not BUNDLED_ROOT.is_dir():
+        return {}
+    return {p.name[:-len(BUNDLED_SUFFIX)]: p for p in sorted(BUNDLED_ROOT.iterdir())
+            if p.name.endswith(BUNDLED_SUFFIX) and (p / ACTOR_JSON).is_file()}
+
+
+def bundled_actor(name: str) -> Path | None:
+    """The bundled actor called ``name`` (``demo`` or its folder name ``demo_actor``), or None."""
+    found = bundled_actors()
+    key = name[:-len(BUNDLED_SUFFIX)] if name.endswith(BUNDLED_SUFFIX) else name
+    return found.get(key)
+
+
+def is_bundled(path: Path) -> bool:
+    """Whether ``path`` is (inside) the bundled actors' folder, which is read-only."""
+    try:
+        return Path(path).resolve().is_relative_to(BUNDLED_ROOT)
+    except OSError:
+        return False
+
+
+def resolve_actor(name: str) -> Path:
+    """The folder of actor ``name`` for reading: :func:`actor_dir` when it holds an actor (or an
+    unfinished training, or is a path), else a bundled actor of that name, else :func:`actor_dir`."""
+    p = actor_dir(name)
+    if p.exists() or Path(name).is_dir() or len(Path(name).parts) > 1 or name.startswith("."):
+        return p
+    return bundled_actor(name) or p
+
+
+def user_copy_of_bundled(path: Path, name: str | None = None) -> tuple[Path, str | None]:
+    """Where to add files to the actor at ``path``: itself, or for a bundled actor a copy under
+    :func:`actors_root` (made now, if missing), with a one-line note saying so."""
+    path = Path(path)
+    if not is_bundled(path):
+        return path, None
+    key = name or path.name
+    key = key[:-len(BUNDLED_SUFFIX)] if key.endswith(BUNDLED_SUFFIX) else key
+    dest = actors_root() / key
+    if is_actor(dest):
+        return dest, f"actor '{key}' is bundled (read-only): using your copy {dest}, which shadows it"
+    if dest.exists() and any(dest.iterdir()):
+        raise CaptureError(f"actor '{key}' is bundled (read-only) and {dest} exists but holds no actor; move "
+                           f"it away so that a copy of the bundled actor can be made there")
+    tmp = dest.with_name(f".{dest.name}.copying")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    shutil.copytree(path, tmp)
+    meta = json.loads((tmp / ACTOR_JSON).read_text())
+    meta["copied_from_bundled"] = str(path)
+    (tmp / ACTOR_JSON).write_text(json.dumps(meta, indent=2))
+    if dest.exists():
+        dest.rmdir()
+    tmp.rename(dest)
+    return dest, (f"actor '{key}' is bundled (read-only): copied it to {dest}, which now shadows the bundled "
+                  f"one (--actor {key} uses the copy)")
 
 
 def is_actor(path: Path) -> bool:
@@ -106,14 +175,20 @@ def validate_metadata(meta: object, name: str, meta_path: Path) -> dict:
 
 
 def read_metadata(name: str) -> dict:
-    """``actor.json`` of actor ``name``, checked (:func:`validate_metadata`); one line when it cannot be used."""
-    path = actor_dir(name)
+    """``actor.json`` of actor ``name`` (see :func:`resolve_actor`), checked (:func:`validate_metadata`); one
+    line when it does not exist or cannot be used."""
+    return _metadata_at(resolve_actor(name), name)
+
+
+def _metadata_at(path: Path, name: str) -> dict:
     meta_path = path / ACTOR_JSON
     if not meta_path.is_file():
         hint = (" (its training is unfinished: rerun capture actor train to resume)"
                 if (path / TRAINING_DIR).is_dir() else "")
+        known = ", ".join(bundled_actors()) or "none"
         raise CaptureError(f"unknown actor '{name}': no {meta_path}{hint}; train it with "
-                           f"'capture actor train {name} --shapes DIR' or give the actor's folder")
+                           f"'capture actor train {name} --shapes DIR', give the actor's folder, or use a bundled "
+                           f"actor ({known}; see 'capture actor list')")
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
@@ -124,15 +199,15 @@ def read_metadata(name: str) -> dict:
 
 
 def load_actor(name: str, device: str | torch.device = "cpu") -> Actor:
-    """Load actor ``name`` (see :func:`actor_dir`) with its frozen model on ``device``.
+    """Load actor ``name`` (see :func:`resolve_actor`, resolved once) with its frozen model on ``device``.
 
     Every file of the package is checked: weights present, readable, finite and of the model's shapes;
     a template with triangles, finite, of the model's vertex count and a face's size.
     """
     from capture.io.meshes import check_face_size
 
-    path = actor_dir(name)
-    meta = read_metadata(name)
+    path = resolve_actor(name)          # resolved once: everything below reads this folder
+    meta = _metadata_at(path, name)
     try:
         config = AIMConfig.from_dict(meta["model"])
     except (TypeError, ValueError) as exc:
@@ -183,25 +258,38 @@ def load_actor(name: str, device: str | torch.device = "cpu") -> Actor:
                  jaw_rot6d=tensors["jaw_rot6d"].to(device), jaw_t=tensors["jaw_t"].to(device), template=template)
 
 
-def list_actors(root: Path | None = None) -> list[dict]:
-    """Metadata of every finished actor under ``root`` (default :func:`actors_root`), by name.
+def list_actors(root: Path | None = None, bundled: bool = True) -> list[dict]:
+    """Metadata of every finished actor under ``root`` (default :func:`actors_root`), by name, then the
+    bundled actors that no user actor of the same name shadows (``"bundled": true``).
 
     An actor whose ``actor.json`` cannot be read is listed with ``error`` (one bad actor does not break the list).
     """
     root = root or actors_root()
-    if not root.is_dir():
-        return []
     out = []
-    for p in sorted(root.iterdir()):
-        if is_actor(p):
+    if root.is_dir():
+        for p in sorted(root.iterdir()):
+            if is_actor(p):
+                try:
+                    meta = read_metadata(str(p))
+                except CaptureError as exc:
+                    meta = {"name": p.name, "error": str(exc)}
+                meta["path"] = str(p)
+                meta["call_name"] = p.name
+                out.append(meta)
+            elif (p / TRAINING_DIR).is_dir():
+                out.append({"name": p.name, "path": str(p), "status": "training unfinished", "call_name": p.name})
+    if bundled:
+        taken = {m["call_name"] for m in out}
+        for key, p in bundled_actors().items():
+            if key in taken:
+                continue
             try:
                 meta = read_metadata(str(p))
             except CaptureError as exc:
-                meta = {"name": p.name, "error": str(exc)}
-            meta["path"] = str(p)
+                meta = {"name": key, "error": str(exc)}
+            meta.update(path=str(p), call_name=key, bundled=True)
+            meta.setdefault("name", key)
             out.append(meta)
-        elif (p / TRAINING_DIR).is_dir():
-            out.append({"name": p.name, "path": str(p), "status": "training unfinished"})
     return out
 
 

@@ -51,7 +51,7 @@ def take_key(cfg: RunConfig, segments: list | None = None) -> str:
     """sha256 over the take's output-relevant settings, its segments (when split) and its input
     fingerprints (cheap: the video's identity reads 2 MiB; the other inputs are small files or the
     actor's weights)."""
-    from capture.actor.package import WEIGHTS, actor_dir
+    from capture.actor.package import WEIGHTS, resolve_actor
     from capture.run.inputs import default_detector
     from capture.io.video import video_identity
 
@@ -64,7 +64,7 @@ def take_key(cfg: RunConfig, segments: list | None = None) -> str:
         det = Path(cfg.detector) if cfg.detector is not None else default_detector(Path(cfg.video))
     except CaptureError:
         det = None
-    actor = actor_dir(str(cfg.actor))
+    actor = resolve_actor(str(cfg.actor))
     fingerprints = {
         "video": video, "camera": _sha(cfg.camera), "actor_weights": _sha(actor / WEIGHTS),
         "detector_onnx": _sha(det), "detector_spec": _sha(None if det is None else det.with_suffix(".json")),

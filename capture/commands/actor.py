@@ -100,7 +100,7 @@ def edit_command(
 
 @actor_app.command("list")
 def list_command() -> None:
-    """List the actors under $CAPTURE_ACTORS (or ./actors)."""
+    """List the actors under $CAPTURE_ACTORS (or ./actors) and the bundled ones (e.g. demo)."""
     from capture.actor.package import list_actors
 
     actors = list_actors()
@@ -108,17 +108,23 @@ def list_command() -> None:
     if not actors:
         console.print("no actors found (train one with 'capture actor train A --shapes DIR')")
         return
-    table = Table("actor", "shapes", "vertices", "mean error mm", "max error mm", "trained", "path")
+    table = Table("actor", "shapes", "vertices", "mean error mm", "max error mm", "trained", "landmarks", "path")
     for a in actors:
+        name = str(a.get("call_name", a.get("name", "?")))
+        if a.get("bundled"):
+            name += " (bundled)"
         if a.get("error"):
-            table.add_row(a.get("name", "?"), "-", "-", "-", "-", "unusable: " + a["error"], a["path"])
+            table.add_row(name, "-", "-", "-", "-", "unusable: " + a["error"], "-", a["path"])
             continue
         q = a.get("quality") if isinstance(a.get("quality"), dict) else {}
         edit = a.get("edit") if isinstance(a.get("edit"), dict) else {}
-        name = str(a.get("name", "?")) + (f" (edit of {edit.get('source_actor', '?')})" if edit else "")
+        if edit:
+            name += f" (edit of {edit.get('source_actor', '?')})"
+        lm_dir = Path(a["path"]) / "landmarks"
+        landmarks = ", ".join(sorted(p.stem for p in lm_dir.glob("*.json") if not p.name.endswith(".report.json"))) or "-"
         table.add_row(name, str(len(a["shape_names"])) if isinstance(a.get("shape_names"), list) else "-",
                       str(a.get("n_vertices", "-")), _fmt(q.get("mean_mm")), _fmt(q.get("max_mm")),
-                      str(a.get("created", a.get("status", "-"))), a["path"])
+                      str(a.get("created", a.get("status", "-"))), landmarks, a["path"])
     console.print(table)
 
 
@@ -155,11 +161,11 @@ def _show(actor, console: Console) -> None:
 
 
 def _show_metadata(actor, meta: dict, console: Console) -> None:
-    from capture.actor.package import actor_dir
+    from capture.actor.package import resolve_actor
 
     q, tr, con = meta["quality"], meta["training"], meta["anatomy_constraints"]
     console.print(f"[bold]{meta['name']}[/]  {meta['n_vertices']} vertices, {len(meta['shape_names'])} shapes "
-                  f"(neutral '{meta['neutral']}'), units {meta['units']}, {actor_dir(str(actor))}")
+                  f"(neutral '{meta['neutral']}'), units {meta['units']}, {resolve_actor(str(actor))}")
     from capture.actor.edit import edit_summary
 
     if edit_summary(meta):

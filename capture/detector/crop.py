@@ -17,7 +17,8 @@ clockwise on screen). The crop's x axis in the frame is ``(cos a, sin a)``. With
 same pixel-centre convention), so landmarks predicted at input pixel ``q`` are at frame pixel ``p``.
 
 Output coordinate frames of a model (``outputs.landmarks.frame``) are converted to input pixels by
-:func:`output_to_input_px`: ``crop_pixels`` (as is), ``crop_unit`` (``x = u * W - 0.5``; 0 and 1 are the
+:func:`output_to_input_px`: ``crop_pixels`` (as is), ``crop_corner_pixels`` (``x = c - 0.5``: input pixels
+measured from the input's outer left/top edge, "0..W corner to corner"), ``crop_unit`` (``x = u * W - 0.5``; 0 and 1 are the
 outer edges of the input), ``crop_signed`` (``x = (s + 1) / 2 * W - 0.5``; -1 and 1 are the outer edges).
 """
 
@@ -92,6 +93,8 @@ def output_to_input_px(xy: np.ndarray, frame: str, input_size: tuple[int, int]) 
     wh = np.array(input_size, dtype=np.float64)
     if frame == "crop_pixels":
         return xy.copy()
+    if frame == "crop_corner_pixels":
+        return xy - 0.5
     if frame == "crop_unit":
         return xy * wh - 0.5
     if frame == "crop_signed":
@@ -105,6 +108,8 @@ def input_px_to_output(q: np.ndarray, frame: str, input_size: tuple[int, int]) -
     wh = np.array(input_size, dtype=np.float64)
     if frame == "crop_pixels":
         return q.copy()
+    if frame == "crop_corner_pixels":
+        return q + 0.5
     if frame == "crop_unit":
         return (q + 0.5) / wh
     if frame == "crop_signed":
@@ -114,7 +119,7 @@ def input_px_to_output(q: np.ndarray, frame: str, input_size: tuple[int, int]) -
 
 def output_scale(frame: str, input_size: tuple[int, int]) -> float:
     """Input px per unit of output length along x (for converting sigmas given in output units)."""
-    return {"crop_pixels": 1.0, "crop_unit": float(input_size[0]), "crop_signed": input_size[0] / 2.0}[frame]
+    return {"crop_pixels": 1.0, "crop_corner_pixels": 1.0, "crop_unit": float(input_size[0]), "crop_signed": input_size[0] / 2.0}[frame]
 
 
 def crop_from_box(x0: float, y0: float, x1: float, y1: float, margin: float, input_size: tuple[int, int],

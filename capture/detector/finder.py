@@ -6,7 +6,9 @@
   histogram-equalised grey frame; the largest detection wins.
 * ``full_frame``: the whole frame, letterboxed into the detector input (no search).
 * a face-detector ONNX with its own spec (:class:`~capture.detector.spec.FaceFinderSpec`): the frame is
-  letterboxed into its input; the box with the highest score at or above ``scores.threshold`` wins.
+  letterboxed into its input; boxes are read directly or decoded from SSD / BlazeFace anchors
+  (:mod:`.decode`), scores may be logits, optional non-maximum suppression; the box with the highest
+  score at or above ``scores.threshold`` wins.
 
 Each finder returns a face box in frame pixels (outer edges ``x0, y0, x1, y1``, pixel centres at
 integers) or None; :meth:`crop` turns it into the landmark detector's crop.
@@ -20,6 +22,7 @@ import numpy as np
 
 from capture.detector.preprocess import preprocess
 from capture.detector.crop import Crop, crop_from_box, full_frame_crop, input_to_frame, output_to_input_px
+from capture.detector.decode import anchor_layers, decode_boxes, make_anchors, nms, sigmoid, to_xyxy
 from capture.detector.session import ModelChecker, check_finite, check_image_input, fmt_shape, open_session
 from capture.detector.spec import FaceFinderSpec, load_face_finder_spec
 from capture.io.errors import CaptureError
@@ -107,18 +110,32 @@ class OnnxFaceFinder(FaceFinder):
         port = check_image_input(chk, self.spec.input)
         chk.only_inputs([self.spec.input.name])
         self.batch = port.shape[0]
-        b = chk.output("outputs.boxes.name", self.spec.boxes.name)
-        chk.shape("output", b, ("N", "K", 4), "outputs.boxes holds (N, K, 4) boxes")
-        chk.float_output("outputs.boxes", b)
-        s = chk.output("outputs.scores.name", self.spec.scores.name)
-        if len(s.shape) == 3:
-            chk.shape("output", s, ("N", "K", 1), "outputs.scores holds (N, K) scores")
+        sp = self.spec
+        b = chk.output("outputs.boxes.name", sp.boxes.name)
+        s = chk.output("outputs.scores.name", sp.scores.name)
+        self.anchors = None
+        if sp.anchors is not None:
+            self.anchors = make_anchors(sp.input.size, sp.anchors)
+            k = len(self.anchors)
+            layout = ", ".join(f"stride {st}: {pc}/cell" for st, pc, _ in
+                               anchor_layers(sp.anchors.strides, sp.anchors.per_cell, sp.anchors.sizes))
+            why = f"anchors ({layout}) on a {sp.input.width}x{sp.input.height} input make {k} anchors"
+            chk.shape("output", b, ("N", k, "D"), f"{why}, and outputs.boxes holds (N, K, 4 or more) regressors")
+            if b.shape[2] is not None and b.shape[2] < 4:
+                chk.fail(f"outputs.boxes '{b.name}' has {b.shape[2]} values per anchor; it needs at least 4 "
+                         f"(x, y, w, h first)")
+            chk.payload(s, [(k,), (k, "C")], f"{why}, and outputs.scores holds one score (or C class scores) "
+                        f"per anchor", )
         else:
-            chk.shape("output", s, ("N", "K"), "outputs.scores holds (N, K) scores")
+            chk.payload(b, [("K", 4)], "outputs.boxes holds (N, K, 4) boxes")
+            chk.payload(s, [("K",), ("K", "C")], "outputs.scores holds (N, K) scores")
+            nb = [d for d in b.shape[1:] if d != 1]
+            ns = [d for d in s.shape[1:] if d != 1]
+            if nb and ns and nb[0] is not None and ns[0] is not None and nb[0] != ns[0]:
+                chk.fail(f"outputs.boxes '{b.name}' has {nb[0]} boxes but outputs.scores '{s.name}' has "
+                         f"{ns[0]} scores")
+        chk.float_output("outputs.boxes", b)
         chk.float_output("outputs.scores", s)
-        if b.shape[1] is not None and s.shape[1] is not None and b.shape[1] != s.shape[1]:
-            chk.fail(f"outputs.boxes '{b.name}' has {b.shape[1]} boxes but outputs.scores '{s.name}' has "
-                     f"{s.shape[1]} scores")
         import hashlib
 
         self._identity = "onnx:" + hashlib.sha256(self.onnx_path.read_bytes()).hexdigest() + ":" + self.spec.digest()
@@ -126,41 +143,75 @@ class OnnxFaceFinder(FaceFinder):
     def identity(self) -> str:
         return self._identity
 
-    def find(self, frame: np.ndarray) -> Box | None:
+    def _decode(self, boxes_raw: np.ndarray, scores_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Raw outputs of one image -> (boxes (K, 4) xyxy in the spec's box frame, scores (K,))."""
+        sp, label = self.spec, self.onnx_path.name
+        b = np.asarray(boxes_raw, dtype=np.float64)[:1]
+        b = b.reshape(b.shape[0], -1, b.shape[-1])[0]                      # (K, D)
+        sc = np.asarray(scores_raw, dtype=np.float64)[:1]
+        k = b.shape[0]
+        sc = sc.reshape(k, -1) if sc.size % max(k, 1) == 0 and sc.size else sc.reshape(-1, 1)
+        if sc.shape[0] != k:
+            raise CaptureError(f"face detector {label}: output '{sp.boxes.name}' has {k} boxes but "
+                               f"'{sp.scores.name}' has {sc.shape[0]} scores {fmt_shape(np.shape(scores_raw))}; "
+                               f"fix the model")
+        if sc.shape[1] > 1 and sp.scores.column is None:
+            raise CaptureError(f"face detector spec {sp.label}: outputs.scores '{sp.scores.name}' has "
+                               f"{sc.shape[1]} values per box; set outputs.scores.column to the face class")
+        col = sp.scores.column or 0
+        if col >= sc.shape[1]:
+            raise CaptureError(f"face detector spec {sp.label}: outputs.scores.column is {col} but "
+                               f"'{sp.scores.name}' has {sc.shape[1]} values per box")
+        sc = sc[:, col]
+        check_finite(label, sp.scores.name, sc[None])
+        if sp.scores.kind == "logit":
+            sc = sigmoid(sc)
+        if self.anchors is not None:
+            if k != len(self.anchors):
+                raise CaptureError(f"face detector {label}: output '{sp.boxes.name}' has {k} rows but the "
+                                   f"anchor layout makes {len(self.anchors)}; fix the spec's anchors")
+            b = decode_boxes(b, self.anchors, sp.boxes.encoding, sp.boxes.scale, sp.boxes.variances)
+        elif b.shape[1] != 4:
+            raise CaptureError(f"face detector {label}: output '{sp.boxes.name}' has {b.shape[1]} values per "
+                               f"box; expected 4")
+        return to_xyxy(b[:, :4], sp.boxes.format), sc
+
+    def find_all(self, frame: np.ndarray) -> list[tuple[Box, float]]:
+        """Every face at or above the score threshold, after NMS (when the spec has it), best first:
+        [(box in frame px, score)]."""
         inp = self.spec.input
         h, w = frame.shape[:2]
         crop = full_frame_crop(w, h, inp.size)
         x = preprocess([frame], [crop], inp)
         if self.batch is not None and self.batch > 1:
             x = np.repeat(x, self.batch, axis=0)
-        boxes, scores = self.session.run([self.spec.boxes.name, self.spec.scores.name], {inp.name: x})
-        label = self.onnx_path.name
-        boxes = np.asarray(boxes, dtype=np.float64)[0]
-        scores = np.asarray(scores, dtype=np.float64)[0].reshape(-1)
-        if boxes.shape[0] != scores.shape[0]:
-            raise CaptureError(f"face detector {label}: output '{self.spec.boxes.name}' has {boxes.shape[0]} "
-                               f"boxes but '{self.spec.scores.name}' has {scores.shape[0]} scores "
-                               f"{fmt_shape(scores.shape)}; fix the model")
-        check_finite(label, self.spec.scores.name, scores[None])
+        boxes_raw, scores_raw = self.session.run([self.spec.boxes.name, self.spec.scores.name], {inp.name: x})
+        boxes, scores = self._decode(boxes_raw, scores_raw)
         ok = scores >= self.spec.scores.threshold
-        if not ok.any():
-            return None
-        i = int(np.argmax(np.where(ok, scores, -np.inf)))
-        b = boxes[i]
-        check_finite(label, self.spec.boxes.name, b[None])
-        fmt = self.spec.boxes.format
-        if fmt == "xywh":
-            b = np.array([b[0], b[1], b[0] + b[2], b[1] + b[3]])
-        elif fmt == "cxcywh":
-            b = np.array([b[0] - b[2] / 2, b[1] - b[3] / 2, b[0] + b[2] / 2, b[1] + b[3] / 2])
-        corners = output_to_input_px(b.reshape(2, 2), self.spec.boxes.frame, inp.size)
-        # box corners are outer edges; in input px an edge at u sits at (u - 0.5) like a centre
-        p = input_to_frame(corners, crop, inp.size)
-        x0, y0 = p.min(axis=0)
-        x1, y1 = p.max(axis=0)
-        if not (x1 > x0 and y1 > y0):
-            return None
-        return (float(x0), float(y0), float(x1), float(y1))
+        boxes, scores = boxes[ok], scores[ok]
+        if len(scores) == 0:
+            return []
+        check_finite(self.onnx_path.name, self.spec.boxes.name, boxes)
+        if self.spec.nms is not None:
+            boxes, scores = nms(boxes, scores, self.spec.nms.iou, self.spec.nms.mode)
+        else:
+            order = np.argsort(-scores, kind="stable")
+            boxes, scores = boxes[order], scores[order]
+        out = []
+        for bx, sc in zip(boxes, scores):
+            corners = output_to_input_px(bx.reshape(2, 2), self.spec.boxes.frame, inp.size)
+            # box corners are outer edges; in input px an edge at u sits at (u - 0.5) like a centre
+            p = input_to_frame(corners, crop, inp.size)
+            x0, y0 = p.min(axis=0)
+            x1, y1 = p.max(axis=0)
+            if x1 > x0 and y1 > y0:
+                out.append(((float(x0), float(y0), float(x1), float(y1)), float(sc)))
+        return out
+
+    def find(self, frame: np.ndarray) -> Box | None:
+        """The face with the highest score (after NMS), or None."""
+        found = self.find_all(frame)
+        return found[0][0] if found else None
 
 
 def make_finder(first_frame: str, threads: int = 2) -> FaceFinder:

@@ -46,6 +46,7 @@ class LandmarkTrack:
     presence: np.ndarray | None        # (T,), when the model gives a presence score
     face_found: np.ndarray             # (T,) bool
     crops: np.ndarray                  # (T, 4) cx, cy, size, angle_deg (NaN when no crop)
+    depth: np.ndarray | None = None    # (T, L) frame px, when the model gives xyz landmarks (a hint)
     fps: float = 0.0
     image_size: tuple[int, int] = (0, 0)
     cached_frames: int = 0             # of the segment frames, how many came from the cache
@@ -59,7 +60,7 @@ class LandmarkTrack:
         arrays = {"frame_index": self.frame_index, "points": self.points, "face_found": self.face_found,
                   "crops": self.crops, "fps": np.float64(self.fps),
                   "image_size": np.asarray(self.image_size, np.int64), "detector": np.str_(self.detector)}
-        for k in ("confidence", "sigma_px", "presence"):
+        for k in ("confidence", "sigma_px", "presence", "depth"):
             if getattr(self, k) is not None:
                 arrays[k] = getattr(self, k)
         with atomic_path(path) as tmp:
@@ -76,7 +77,7 @@ class LandmarkTrack:
         return cls(detector=str(g["detector"]), frame_index=g["frame_index"], points=g["points"],
                    confidence=g.get("confidence"), sigma_px=g.get("sigma_px"), presence=g.get("presence"),
                    face_found=g["face_found"], crops=g["crops"], fps=float(g["fps"]),
-                   image_size=tuple(int(v) for v in g["image_size"]))
+                   image_size=tuple(int(v) for v in g["image_size"]), depth=g.get("depth"))
 
 
 def stack_frames(detector: str, results: Sequence[FrameLandmarks], count: int) -> LandmarkTrack:
@@ -85,6 +86,7 @@ def stack_frames(detector: str, results: Sequence[FrameLandmarks], count: int) -
     has_c = any(r.confidence is not None for r in results)
     has_s = any(r.sigma_px is not None for r in results)
     has_p = any(r.presence is not None for r in results)
+    has_d = any(r.depth is not None for r in results)
 
     def col(attr, shape):
         a = np.full((t,) + shape, np.nan)
@@ -102,7 +104,8 @@ def stack_frames(detector: str, results: Sequence[FrameLandmarks], count: int) -
         sigma_px=col("sigma_px", (count,)) if has_s else None,
         presence=col("presence", ()) if has_p else None,
         face_found=np.array([r.face_found for r in results], bool),
-        crops=np.array([r.crop for r in results], np.float64).reshape(t, 4))
+        crops=np.array([r.crop for r in results], np.float64).reshape(t, 4),
+        depth=col("depth", (count,)) if has_d else None)
 
 
 def _segment_path(d: Path, start: int) -> Path:
@@ -112,7 +115,7 @@ def _segment_path(d: Path, start: int) -> Path:
 def _write_segment(path: Path, track: LandmarkTrack) -> None:
     arrays = {"frame_index": track.frame_index, "points": track.points, "face_found": track.face_found,
               "crops": track.crops}
-    for k in ("confidence", "sigma_px", "presence"):
+    for k in ("confidence", "sigma_px", "presence", "depth"):
         v = getattr(track, k)
         if v is not None:
             arrays[k] = v
@@ -141,7 +144,8 @@ def _read_segment(path: Path, detector: str, count: int) -> list[FrameLandmarks]
             g["confidence"][i] if "confidence" in g else None,
             g["sigma_px"][i] if "sigma_px" in g else None,
             float(g["presence"][i]) if "presence" in g else None,
-            bool(g["face_found"][i]), tuple(float(v) for v in g["crops"][i])))
+            bool(g["face_found"][i]), tuple(float(v) for v in g["crops"][i]),
+            g["depth"][i] if "depth" in g else None))
     return out
 
 

@@ -27,7 +27,12 @@ Per lane and frame:
    landmarks) and drops the track; so do fewer than ``min_confident_fraction`` confident landmarks (the
    frame's landmarks are kept, the next frame goes back to the finder).
 
-Confidence: ``probability`` outputs are kept as given (clipped to 0..1). ``sigma_px`` outputs (1-sigma,
+Outputs are decoded as the spec says (:mod:`.decode`): coordinates in any order and with any extra
+dimensions of size 1, ``xyz`` depth kept in frame px (``FrameLandmarks.depth``), heatmaps decoded to
+sub-pixel peaks whose value is the landmark's confidence (unless the model has a confidence output).
+
+Confidence: ``probability`` outputs are kept as given (clipped to 0..1), ``logit`` ones go through the
+sigmoid (so do ``logit`` presence scores, whose threshold is then a probability). ``sigma_px`` outputs (1-sigma,
 input pixels) are kept as ``sigma_px`` in frame pixels and turned into a probability-like weight
 ``1 / (1 + (sigma / (SIGMA_REF_FRACTION * input width))^2)`` (0.5 at a sigma of 2 % of the crop).
 """
@@ -41,8 +46,9 @@ from typing import Sequence
 
 import numpy as np
 
-from capture.detector.crop import (Crop, align_angle, crop_from_landmarks, input_to_frame, output_to_input_px,
-                                   smooth_crop)
+from capture.detector.crop import (Crop, align_angle, crop_from_landmarks, input_to_frame, output_scale,
+                                   output_to_input_px, smooth_crop)
+from capture.detector.decode import coordinates, heatmap_peaks, heatmap_to_input_px, per_crop, sigmoid
 from capture.detector.finder import FaceFinder, make_finder
 from capture.detector.preprocess import preprocess
 from capture.detector.session import (ModelChecker, check_finite, check_image_input, fmt_shape,
@@ -84,6 +90,7 @@ class FrameLandmarks:
     presence: float | None              # the model's face-presence score, when it gives one
     face_found: bool
     crop: tuple[float, float, float, float]  # (cx, cy, size, angle_deg) used; NaN when none
+    depth: np.ndarray | None = None     # (L,) the model's z (xyz landmarks) in frame px, a relative depth hint
 
 
 @dataclass
@@ -168,30 +175,27 @@ class Detector:
             if q.shape[0] is not None and n_img is not None and q.shape[0] != n_img:
                 chk.fail(f"query input '{q.name}' has batch {q.shape[0]} but image input '{port.name}' has {n_img}")
         chk.only_inputs(fed)
-        lm = chk.output("outputs.landmarks.name", s.landmarks.name)
-        if len(lm.shape) == 2:  # (N, 2L): x0, y0, x1, y1, ...
-            chk.shape("output", lm, ("N", 2 * s.count), f"landmarks.count is {s.count} and outputs.landmarks "
-                      f"holds (N, L, 2) or (N, 2L) x, y positions")
+        lo = s.landmarks
+        lm = chk.output("outputs.landmarks.name", lo.name)
+        if lo.kind == "heatmap":
+            form = (s.count, "H", "W") if lo.heatmap.layout == "LHW" else ("H", "W", s.count)
+            chk.payload(lm, [form], f"landmarks.count is {s.count} and outputs.landmarks is a heatmap "
+                        f"({lo.heatmap.layout})")
         else:
-            if (len(lm.shape) == 3 and lm.shape[2] in (None, 2) and lm.shape[1] is not None
-                    and lm.shape[1] != s.count):
-                chk.fail(f"landmarks.count is {s.count}, so the model output '{lm.name}' should be "
-                         f"{fmt_shape(('N', s.count, 2))} but it is {fmt_shape(lm.raw_shape)}")
-            chk.shape("output", lm, ("N", s.count, 2), "outputs.landmarks holds (N, L, 2) or (N, 2L) x, y positions")
+            c = lo.n_components
+            pair = (s.count, c) if lo.order == "interleaved" else (c, s.count)
+            chk.payload(lm, [pair, (c * s.count,)],
+                        f"landmarks.count is {s.count} and outputs.landmarks holds {lo.components} "
+                        f"{lo.order} ({s.count * c} values per crop)")
         chk.float_output("outputs.landmarks", lm)
         if s.confidence is not None:
             c = chk.output("outputs.confidence.name", s.confidence.name)
-            if len(c.shape) == 3:
-                chk.shape("output", c, ("N", s.count, 1), "outputs.confidence holds (N, L) values")
-            else:
-                chk.shape("output", c, ("N", s.count), "outputs.confidence holds (N, L) values")
+            chk.payload(c, [(s.count,)], f"landmarks.count is {s.count} and outputs.confidence holds one value "
+                        f"per landmark")
             chk.float_output("outputs.confidence", c)
         if s.presence is not None:
             p = chk.output("outputs.presence.name", s.presence.name)
-            if len(p.shape) == 2:
-                chk.shape("output", p, ("N", 1), "outputs.presence holds one score per crop, (N,) or (N, 1)")
-            else:
-                chk.shape("output", p, ("N",), "outputs.presence holds one score per crop, (N,) or (N, 1)")
+            chk.payload(p, [()], "outputs.presence holds one score per crop")
             chk.float_output("outputs.presence", p)
         self.fixed_batch = n_img
         self.batch_size = n_img if n_img is not None else self.max_batch
@@ -255,35 +259,43 @@ class Detector:
         self.model_frames += n
         res = dict(zip(names, outs))
         label = self.onnx_path.name
-        lm = np.asarray(res[s.landmarks.name], dtype=np.float64)[:n]
-        if lm.ndim == 2 and lm.shape == (n, 2 * s.count):
-            lm = lm.reshape(n, s.count, 2)
-        if lm.shape != (n, s.count, 2):
-            raise CaptureError(f"detector model {label}: output '{s.landmarks.name}' is {fmt_shape(lm.shape)} "
-                               f"for {n} crops; the spec (landmarks.count = {s.count}) needs "
-                               f"{fmt_shape((n, s.count, 2))}")
-        check_finite(label, s.landmarks.name, lm, indices)
+        lo = s.landmarks
+        raw = np.asarray(res[lo.name])
+        lm, depth, hm_conf = self._decode_landmarks(raw, n, label)
+        check_finite(label, lo.name, lm, indices)
         conf = None
         if s.confidence is not None:
-            conf = np.asarray(res[s.confidence.name], dtype=np.float64)[:n].reshape(n, -1)
+            conf = per_crop(res[s.confidence.name], n)
             if conf.shape != (n, s.count):
                 raise CaptureError(f"detector model {label}: output '{s.confidence.name}' has shape "
                                    f"{fmt_shape(res[s.confidence.name].shape)}; expected (N, {s.count})")
             check_finite(label, s.confidence.name, conf, indices)
+        elif hm_conf is not None:
+            conf = hm_conf
         pres = None
         if s.presence is not None:
-            pres = np.asarray(res[s.presence.name], dtype=np.float64).reshape(-1)[:n]
+            pres = per_crop(res[s.presence.name], n)
+            if pres.shape[1] != 1:
+                raise CaptureError(f"detector model {label}: output '{s.presence.name}' has shape "
+                                   f"{fmt_shape(res[s.presence.name].shape)}; expected one score per crop")
+            pres = pres[:, 0]
             check_finite(label, s.presence.name, pres, indices)
+            if s.presence.kind == "logit":
+                pres = sigmoid(pres)
 
         results = []
         for j in range(n):
             crop = crops[j]
-            q_px = output_to_input_px(lm[j], s.landmarks.frame, s.input.size)
+            q_px = lm[j] if lo.kind == "heatmap" else output_to_input_px(lm[j], lo.frame, s.input.size)
             pts = input_to_frame(q_px, crop, s.input.size)
+            dep = None if depth is None else depth[j] * output_scale(lo.frame, s.input.size) * crop.size / s.input.width
             confidence = sigma = None
             if conf is not None:
-                if s.confidence.kind == "probability":
+                kind = "probability" if s.confidence is None else s.confidence.kind
+                if kind == "probability":
                     confidence = np.clip(conf[j], 0.0, 1.0)
+                elif kind == "logit":
+                    confidence = sigmoid(conf[j])
                 else:
                     sig_in = np.abs(conf[j])  # input px
                     sigma = sig_in * crop.size / s.input.width
@@ -293,9 +305,41 @@ class Detector:
             found = presence is None or presence >= s.presence.threshold
             if not found:
                 pts = np.full_like(pts, np.nan)
+                dep = None if dep is None else np.full_like(dep, np.nan)
             results.append(FrameLandmarks(int(indices[j]), pts, confidence, sigma, presence, found,
-                                          crop.as_tuple()))
+                                          crop.as_tuple(), dep))
         return results
+
+    def _decode_landmarks(self, raw: np.ndarray, n: int, label: str):
+        """The landmark output -> (input-frame positions (n, L, 2) in the output's ``frame`` (heatmaps:
+        input px), depth (n, L) or None, heatmap confidence (n, L) or None)."""
+        s = self.spec
+        lo = s.landmarks
+        if lo.kind == "heatmap":
+            dims = [d for d in raw.shape[1:] if d != 1]
+            if len(dims) == 2 and s.count == 1:
+                dims = [1] + dims if lo.heatmap.layout == "LHW" else dims + [1]
+            want = f"(N, {s.count}, H, W)" if lo.heatmap.layout == "LHW" else f"(N, H, W, {s.count})"
+            if len(dims) != 3 or (dims[0] if lo.heatmap.layout == "LHW" else dims[2]) != s.count:
+                raise CaptureError(f"detector model {label}: heatmap output '{lo.name}' is {fmt_shape(raw.shape)}; "
+                                   f"the spec needs {want}")
+            hm = np.asarray(raw, np.float64)[:n].reshape((n,) + tuple(dims))
+            if lo.heatmap.layout == "HWL":
+                hm = hm.transpose(0, 3, 1, 2)
+            check_finite(label, lo.name, hm, None)
+            if lo.heatmap.values == "logit":
+                hm = sigmoid(hm)
+            uv, peak = heatmap_peaks(hm, lo.heatmap.refine)
+            q = heatmap_to_input_px(uv, (hm.shape[3], hm.shape[2]), s.input.size)
+            return q, None, np.clip(peak, 0.0, 1.0)
+        flat = per_crop(raw, n)
+        c = lo.n_components
+        if flat.shape[1] != s.count * c:
+            raise CaptureError(f"detector model {label}: output '{lo.name}' is {fmt_shape(raw.shape)} for {n} "
+                               f"crops; the spec (landmarks.count = {s.count}, components {lo.components}) needs "
+                               f"{s.count * c} values per crop")
+        xy, depth = coordinates(flat, s.count, c, lo.order)
+        return xy, depth, None
 
     # ---------------------------------------------------------------- tracking
     def _tracked_crop(self, state: TrackState) -> Crop | None:

@@ -108,6 +108,24 @@ class ModelChecker:
             self.fail(f"{why}, so the model {what} '{port.name}' should be {fmt_shape(expected)} "
                       f"but it is {fmt_shape(port.raw_shape)}")
 
+    def payload(self, port: Port, forms: Sequence[Sequence[int | str]], why: str, what: str = "output") -> None:
+        """Check an output (N, ...) whose per-crop part, static 1s dropped, is one of ``forms``.
+
+        Dimensions of size 1 after the batch axis are ignored (``(1, 1, 1, 1404)`` holds 1404 values
+        per crop); dynamic dimensions match anything. The error shows the form with the model's rank first.
+        """
+        if len(port.shape) < 1:
+            self.fail(f"{why}, so the model {what} '{port.name}' should have a batch axis but it is a scalar")
+        got = [d for d, r in zip(port.shape[1:], port.raw_shape[1:]) if d != 1]
+        for form in forms:
+            exp = [e for e in form if e != 1]
+            if len(exp) == len(got) and all(isinstance(e, str) or d is None or d == e for d, e in zip(got, exp)):
+                return
+        ranked = sorted(forms, key=lambda f: len([e for e in f if e != 1]) != len(got))
+        shown = " or ".join(fmt_shape(("N",) + tuple(f)) for f in ranked)
+        self.fail(f"{why}, so the model {what} '{port.name}' should be {shown} (extra dimensions of size 1 "
+                  f"allowed) but it is {fmt_shape(port.raw_shape)}")
+
     def float_output(self, field: str, port: Port) -> None:
         if port.dtype not in FLOAT_OUTPUTS:
             self.fail(f"{field}: the model output '{port.name}' should be a float tensor but it is {port.dtype}")

@@ -1,6 +1,7 @@
 """Detector specs: the JSON that says how to feed a user's ONNX landmark detector and read it.
 
-Two schemas live here (both documented in ``docs/detector_spec.md``):
+Two schemas live here (both documented in ``docs/detector_spec.md``; version 1 files keep working,
+version 2 adds the tensor-layout fields: landmark components and order, heatmaps, logits, anchors):
 
 * :class:`DetectorSpec` (``"format": "capture-detector"``): a landmark detector, ``dense`` or ``query``.
 * :class:`FaceFinderSpec` (``"format": "capture-face-detector"``): an optional face-box detector used
@@ -24,14 +25,24 @@ from capture.io.errors import CaptureError
 
 DETECTOR_FORMAT = "capture-detector"
 FACE_FINDER_FORMAT = "capture-face-detector"
-VERSION = 1
+VERSION = 2                 # the newest format this build writes in examples
+VERSIONS = (1, 2)           # the formats it reads
 
 LAYOUTS = ("NCHW", "NHWC")
 COLORS = {"RGB": 3, "BGR": 3, "GRAY": 1}
 DTYPES = ("float32", "uint8")
-FRAMES = ("crop_pixels", "crop_unit", "crop_signed")
+FRAMES = ("crop_pixels", "crop_corner_pixels", "crop_unit", "crop_signed")
 CONFIDENCE_KINDS = ("probability", "sigma_px")
+CONFIDENCE_KINDS_V2 = ("probability", "logit", "sigma_px")
+SCORE_KINDS = ("probability", "logit")    # version 2: presence / face scores (v1: raw score)
+LANDMARK_KINDS = ("coordinates", "heatmap")
+COMPONENTS = {"xy": 2, "xyz": 3}
+ORDERS = ("interleaved", "planar")
+HEATMAP_LAYOUTS = ("LHW", "HWL")
+HEATMAP_REFINES = ("gaussian", "parabola", "none")
 BOX_FORMATS = ("xyxy", "xywh", "cxcywh")
+BOX_ENCODINGS = ("absolute", "anchor_linear", "anchor_ssd")
+NMS_MODES = ("hard", "weighted")
 FIRST_FRAME_BUILTINS = ("haar", "full_frame")
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
@@ -90,9 +101,26 @@ class CropSpec:
 
 
 @dataclass(frozen=True)
+class HeatmapSpec:
+    """Heatmap landmark output (N, L, H, W) (``layout`` LHW) or (N, H, W, L) (HWL)."""
+
+    layout: str = "LHW"
+    refine: str = "gaussian"     # sub-pixel step: gaussian (log-parabola), parabola, none
+    values: str = "probability"  # probability or logit (sigmoid gives the confidence)
+
+
+@dataclass(frozen=True)
 class LandmarkOutput:
     name: str
     frame: str
+    kind: str = "coordinates"     # coordinates or heatmap
+    components: str = "xy"        # xy or xyz (z: a depth hint in the units of x)
+    order: str = "interleaved"    # interleaved (x0 y0 [z0] x1 ...) or planar (x0 x1 ... y0 y1 ...)
+    heatmap: HeatmapSpec | None = None
+
+    @property
+    def n_components(self) -> int:
+        return COMPONENTS[self.components]
 
 
 @dataclass(frozen=True)
@@ -105,6 +133,7 @@ class ConfidenceOutput:
 class PresenceOutput:
     name: str
     threshold: float
+    kind: str = "score"           # score (v1: compared as given), probability or logit (-> probability)
 
 
 @dataclass(frozen=True)
@@ -137,12 +166,38 @@ class BoxesOutput:
     name: str
     format: str
     frame: str
+    encoding: str = "absolute"              # absolute, anchor_linear (BlazeFace), anchor_ssd
+    scale: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)   # anchor_linear: divisors of x, y, w, h
+    variances: tuple[float, float] = (0.1, 0.2)       # anchor_ssd: centre and size variances
 
 
 @dataclass(frozen=True)
 class ScoresOutput:
     name: str
     threshold: float
+    kind: str = "score"          # score (v1), probability or logit
+    column: int | None = None    # for (N, K, C) scores with C > 1: the face column
+
+
+@dataclass(frozen=True)
+class AnchorSpec:
+    """SSD-style anchor layout over the finder input (see :func:`capture.detector.decode.make_anchors`)."""
+
+    strides: tuple[int, ...]
+    per_cell: tuple[int, ...]     # per stride entry
+    offset: float = 0.5
+    sizes: tuple[tuple[float, ...], ...] | None = None   # per stride entry: anchor sides in input px
+
+    def count(self, input_size: tuple[int, int]) -> int:
+        from capture.detector.decode import make_anchors
+
+        return len(make_anchors(input_size, self))
+
+
+@dataclass(frozen=True)
+class NmsSpec:
+    iou: float = 0.3
+    mode: str = "hard"
 
 
 @dataclass(frozen=True)
@@ -154,6 +209,8 @@ class FaceFinderSpec:
     boxes: BoxesOutput
     scores: ScoresOutput
     raw: dict
+    anchors: AnchorSpec | None = None
+    nms: NmsSpec | None = None
 
     @property
     def label(self) -> str:
@@ -288,6 +345,53 @@ def _read_json(path: Path, what: str) -> dict:
         raise CaptureError(f"{what} {path} is not valid JSON ({exc}); fix the file") from None
 
 
+def _version(r: _Reader) -> int:
+    v = r.get("version")
+    if isinstance(v, bool) or v not in VERSIONS:
+        r.fail("version", f"{' or '.join(str(x) for x in VERSIONS)} (the formats this build reads)", v)
+    return int(v)
+
+
+def _parse_score(r: _Reader, version: int, cls):
+    """``{"name", "threshold"[, "kind"]}``: v1 compares the raw score; v2 ``kind`` probability or logit
+    (the threshold is then a probability in [0, 1] and a logit is turned into one by the sigmoid)."""
+    extra = ("column",) if cls is ScoresOutput else ()
+    r.check_keys(("name", "threshold"), (("kind",) + extra) if version >= 2 else ())
+    kind = r.str_("kind", SCORE_KINDS) if r.get("kind") is not None else "score"
+    thr = r.number("threshold", 0.0, 1.0) if kind != "score" else r.number("threshold")
+    kw = {}
+    if cls is ScoresOutput and r.get("column") is not None:
+        kw["column"] = r.int_("column", lo=0)
+    return cls(name=r.str_("name"), threshold=thr, kind=kind, **kw)
+
+
+def _parse_landmark_output(r: _Reader, version: int) -> LandmarkOutput:
+    if version == 1:
+        r.check_keys(("name", "frame"))
+        return LandmarkOutput(name=r.str_("name"), frame=r.str_("frame", FRAMES))
+    r.check_keys(("name",), ("frame", "kind", "components", "order", "heatmap"))
+    name = r.str_("name")
+    kind = r.str_("kind", LANDMARK_KINDS) if r.get("kind") is not None else "coordinates"
+    if kind == "heatmap":
+        for key in ("frame", "components", "order"):
+            if r.get(key) is not None:
+                r.fail(r.field(key), "absent for a heatmap output (heatmap cells cover the input edge to "
+                       "edge; set kind to 'coordinates' for positions)", r.get(key))
+        hm = HeatmapSpec()
+        if r.get("heatmap") is not None:
+            h = r.sub("heatmap")
+            h.check_keys((), ("layout", "refine", "values"))
+            hm = HeatmapSpec(layout=h.str_("layout", HEATMAP_LAYOUTS) if h.get("layout") is not None else "LHW",
+                             refine=h.str_("refine", HEATMAP_REFINES) if h.get("refine") is not None else "gaussian",
+                             values=h.str_("values", SCORE_KINDS) if h.get("values") is not None else "probability")
+        return LandmarkOutput(name=name, frame="crop_unit", kind="heatmap", heatmap=hm)
+    if r.get("heatmap") is not None:
+        r.fail(r.field("heatmap"), "absent unless kind is 'heatmap'", r.get("heatmap"))
+    return LandmarkOutput(name=name, frame=r.str_("frame", FRAMES),
+                          components=r.str_("components", tuple(COMPONENTS)) if r.get("components") is not None else "xy",
+                          order=r.str_("order", ORDERS) if r.get("order") is not None else "interleaved")
+
+
 def parse_detector_spec(obj: Any, path: Path | None = None) -> DetectorSpec:
     """Validate a detector spec given as parsed JSON; ``path`` resolves relative face-finder paths."""
     label = path.name if path else "<spec>"
@@ -295,8 +399,7 @@ def parse_detector_spec(obj: Any, path: Path | None = None) -> DetectorSpec:
     r.check_keys(("format", "version", "name", "kind", "input", "crop", "outputs", "landmarks"), ("query",))
     if r.get("format") != DETECTOR_FORMAT:
         r.fail("format", repr(DETECTOR_FORMAT), r.get("format"))
-    if r.get("version") != VERSION:
-        r.fail("version", f"{VERSION} (this build reads format {VERSION})", r.get("version"))
+    version = _version(r)
     name = r.str_("name")
     if not NAME_RE.match(name):
         r.fail("name", "letters, digits, '_', '.', '-' (it names the landmark embedding file)", name)
@@ -348,19 +451,17 @@ def parse_detector_spec(obj: Any, path: Path | None = None) -> DetectorSpec:
 
     o = r.sub("outputs")
     o.check_keys(("landmarks",), ("confidence", "presence"))
-    ol = o.sub("landmarks")
-    ol.check_keys(("name", "frame"))
-    landmarks = LandmarkOutput(name=ol.str_("name"), frame=ol.str_("frame", FRAMES))
+    landmarks = _parse_landmark_output(o.sub("landmarks"), version)
     confidence = None
     if o.get("confidence") is not None:
         oc = o.sub("confidence")
         oc.check_keys(("name", "kind"))
-        confidence = ConfidenceOutput(name=oc.str_("name"), kind=oc.str_("kind", CONFIDENCE_KINDS))
+        confidence = ConfidenceOutput(name=oc.str_("name"),
+                                      kind=oc.str_("kind", CONFIDENCE_KINDS if version == 1 else CONFIDENCE_KINDS_V2))
     presence = None
     if o.get("presence") is not None:
         op = o.sub("presence")
-        op.check_keys(("name", "threshold"))
-        presence = PresenceOutput(name=op.str_("name"), threshold=op.number("threshold"))
+        presence = _parse_score(op, version, PresenceOutput)
     names = [x.name for x in (landmarks, confidence, presence) if x is not None]
     if len(set(names)) != len(names):
         o.fail("outputs", "different output names for landmarks, confidence and presence", names)
@@ -368,26 +469,105 @@ def parse_detector_spec(obj: Any, path: Path | None = None) -> DetectorSpec:
                         landmarks=landmarks, confidence=confidence, presence=presence, count=count, raw=obj)
 
 
+def _parse_anchors(r: _Reader) -> AnchorSpec:
+    r.check_keys(("strides",), ("per_cell", "offset", "sizes"))
+    strides = r.get("strides")
+    if (not isinstance(strides, list) or not strides
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in strides)):
+        r.fail(r.field("strides"), "a list of positive integers (input px per anchor cell, one per layer)", strides)
+    sizes = r.get("sizes")
+    if sizes is not None:
+        if r.get("per_cell") is not None:
+            r.fail(r.field("per_cell"), "absent when sizes are given (one anchor per size)", r.get("per_cell"))
+        if (not isinstance(sizes, list) or len(sizes) != len(strides)
+                or not all(isinstance(row, list) and row and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                                 and v > 0 for v in row) for row in sizes)):
+            r.fail(r.field("sizes"), f"{len(strides)} lists (one per stride) of anchor sides in input px", sizes)
+        per_cell = tuple(len(row) for row in sizes)
+        sizes = tuple(tuple(float(v) for v in row) for row in sizes)
+    else:
+        pc = r.get("per_cell", 1)
+        if isinstance(pc, int) and not isinstance(pc, bool) and pc > 0:
+            per_cell = (pc,) * len(strides)
+        elif (isinstance(pc, list) and len(pc) == len(strides)
+              and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in pc)):
+            per_cell = tuple(pc)
+        else:
+            r.fail(r.field("per_cell"), f"a positive integer or {len(strides)} of them (one per stride)", pc)
+    return AnchorSpec(strides=tuple(strides), per_cell=per_cell, offset=r.number("offset", 0.0, 1.0, default=0.5),
+                      sizes=sizes)
+
+
 def parse_face_finder_spec(obj: Any, path: Path | None = None) -> FaceFinderSpec:
     label = path.name if path else "<face finder spec>"
     r = _Reader(label, obj)
-    r.check_keys(("format", "version", "input", "outputs"))
+    r.check_keys(("format", "version", "input", "outputs"), ("anchors", "nms"))
     if r.get("format") != FACE_FINDER_FORMAT:
         r.fail("format", repr(FACE_FINDER_FORMAT), r.get("format"))
-    if r.get("version") != VERSION:
-        r.fail("version", f"{VERSION}", r.get("version"))
+    version = _version(r)
+    if version == 1:
+        for key in ("anchors", "nms"):
+            if key in r.obj:
+                r.fail(key, "absent in version 1 (set version to 2)", r.get(key))
     inp = _parse_input(r.sub("input"))
     o = r.sub("outputs")
     o.check_keys(("boxes", "scores"))
     b = o.sub("boxes")
-    b.check_keys(("name", "format", "frame"))
-    boxes = BoxesOutput(name=b.str_("name"), format=b.str_("format", BOX_FORMATS), frame=b.str_("frame", FRAMES))
-    s = o.sub("scores")
-    s.check_keys(("name", "threshold"))
-    scores = ScoresOutput(name=s.str_("name"), threshold=s.number("threshold"))
+    if version == 1:
+        b.check_keys(("name", "format", "frame"))
+        boxes = BoxesOutput(name=b.str_("name"), format=b.str_("format", BOX_FORMATS), frame=b.str_("frame", FRAMES))
+    else:
+        b.check_keys(("name",), ("format", "frame", "encoding", "scale", "variances"))
+        enc = b.str_("encoding", BOX_ENCODINGS) if b.get("encoding") is not None else "absolute"
+        kw: dict = {}
+        if enc == "absolute":
+            for key in ("scale", "variances"):
+                if b.get(key) is not None:
+                    b.fail(b.field(key), f"absent for encoding 'absolute' (it belongs to the anchor encodings)",
+                           b.get(key))
+            fmt, frame = b.str_("format", BOX_FORMATS), b.str_("frame", FRAMES)
+        else:
+            for key in ("format", "frame"):
+                if b.get(key) is not None:
+                    b.fail(b.field(key), f"absent for encoding '{enc}' (anchor regressors are cx, cy, w, h "
+                           f"offsets; the anchors fix the frame)", b.get(key))
+            fmt, frame = "cxcywh", "crop_unit"
+            if enc == "anchor_linear":
+                sc = b.get("scale", [1.0, 1.0, 1.0, 1.0])
+                if isinstance(sc, (int, float)) and not isinstance(sc, bool):
+                    sc = [sc] * 4
+                if (not isinstance(sc, list) or len(sc) != 4
+                        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v != 0 for v in sc)):
+                    b.fail(b.field("scale"), "one non-zero number or four (x, y, w, h divisors, e.g. 128)", sc)
+                kw["scale"] = tuple(float(v) for v in sc)
+                if b.get("variances") is not None:
+                    b.fail(b.field("variances"), "absent for encoding 'anchor_linear'", b.get("variances"))
+            else:
+                va = b.get("variances", [0.1, 0.2])
+                if (not isinstance(va, list) or len(va) != 2
+                        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in va)):
+                    b.fail(b.field("variances"), "two positive numbers [centre, size], e.g. [0.1, 0.2]", va)
+                kw["variances"] = (float(va[0]), float(va[1]))
+                if b.get("scale") is not None:
+                    b.fail(b.field("scale"), "absent for encoding 'anchor_ssd'", b.get("scale"))
+        boxes = BoxesOutput(name=b.str_("name"), format=fmt, frame=frame, encoding=enc, **kw)
+    scores = _parse_score(o.sub("scores"), version, ScoresOutput)
     if boxes.name == scores.name:
         o.fail("outputs.scores.name", "a different output than outputs.boxes.name", scores.name)
-    return FaceFinderSpec(path=path, input=inp, boxes=boxes, scores=scores, raw=obj)
+    anchors = _parse_anchors(r.sub("anchors")) if r.get("anchors") is not None else None
+    if (anchors is None) != (boxes.encoding == "absolute"):
+        if anchors is None:
+            r.fail("anchors", f"an anchor layout for outputs.boxes.encoding '{boxes.encoding}'", None)
+        r.fail("outputs.boxes.encoding", "'anchor_linear' or 'anchor_ssd' when anchors are given", boxes.encoding)
+    if anchors is not None and anchors.sizes is None and boxes.encoding == "anchor_ssd":
+        r.fail("anchors.sizes", "anchor sides in input px for encoding 'anchor_ssd'", None)
+    nms = None
+    if r.get("nms") is not None:
+        n = r.sub("nms")
+        n.check_keys(("iou",), ("mode",))
+        nms = NmsSpec(iou=n.number("iou", 0.0, 1.0),
+                      mode=n.str_("mode", NMS_MODES) if n.get("mode") is not None else "hard")
+    return FaceFinderSpec(path=path, input=inp, boxes=boxes, scores=scores, raw=obj, anchors=anchors, nms=nms)
 
 
 def load_detector_spec(path: str | Path) -> DetectorSpec:

@@ -199,20 +199,26 @@ def conv_model(*, size=(256, 256), count=68, widths: Sequence[int] = (16, 32, 64
     return _model(nodes, inputs, outputs, inits)
 
 
-def box_model(boxes: np.ndarray, scores: np.ndarray, *, size=(128, 96)):
-    """Face detector with fixed outputs: boxes (N, K, 4), scores (N, K)."""
+def box_model(boxes: np.ndarray, scores: np.ndarray, *, size=(128, 96), layout="NCHW", batch: int | None = None,
+              names=("boxes", "scores")):
+    """Face detector with fixed outputs: boxes (N, K, D) (D = 4, or more, e.g. BlazeFace's 16 regressors),
+    scores (N, K) or (N, K, C) as given by ``scores`` (K,) or (K, C)."""
     _, TensorProto, helper, _ = _onnx()
     b = np.asarray(boxes, np.float32)[None]
     s = np.asarray(scores, np.float32)[None]
     nodes, inits = [], [_const("b_const", b), _const("s_const", s), _const("sq2", np.array([2], np.int64))]
     _zero_of_image(nodes, inits, "image", "float32")
-    nodes += [helper.make_node("Add", ["zero", "b_const"], ["boxes"]),
-              helper.make_node("Squeeze", ["zero", "sq2"], ["zero_n1"]),
-              helper.make_node("Add", ["zero_n1", "s_const"], ["scores"])]
+    nodes.append(helper.make_node("Add", ["zero", "b_const"], [names[0]]))
+    if s.ndim == 2:
+        nodes += [helper.make_node("Squeeze", ["zero", "sq2"], ["zero_n1"]),
+                  helper.make_node("Add", ["zero_n1", "s_const"], [names[1]])]
+    else:
+        nodes.append(helper.make_node("Add", ["zero", "s_const"], [names[1]]))
     k = b.shape[1]
-    outputs = [helper.make_tensor_value_info("boxes", TensorProto.FLOAT, ["N", k, 4]),
-               helper.make_tensor_value_info("scores", TensorProto.FLOAT, ["N", k])]
-    return _model(nodes, [_image_input("image", "NCHW", size, 3, "float32", None)], outputs, inits)
+    n = batch if batch is not None else "N"
+    outputs = [helper.make_tensor_value_info(names[0], TensorProto.FLOAT, [n, k, b.shape[2]]),
+               helper.make_tensor_value_info(names[1], TensorProto.FLOAT, [n] + list(s.shape[1:]))]
+    return _model(nodes, [_image_input("image", layout, size, 3, "float32", batch)], outputs, inits)
 
 
 def detector_spec(name: str = "synthetic", count: int = 3, *, size=(64, 64), layout="NCHW", color="RGB",
@@ -243,3 +249,184 @@ def save_detector(model, spec: dict, directory: str | Path, stem: str = "detecto
     onnx.save(model, str(d / f"{stem}.onnx"))
     (d / f"{stem}.json").write_text(json.dumps(spec, indent=2))
     return d / f"{stem}.onnx"
+
+
+# ----------------------------------------------------------------------------------------------
+# the same detector in the tensor layouts of spec version 2
+
+LAYOUTS_V2 = ("xyz_4d_corner", "planar_unit", "planar_flat_xyz_signed", "heatmap", "heatmap_hwl_logit")
+HEATMAP_STRIDE = 4
+HEATMAP_SIGMA = 1.5   # heatmap px
+
+
+def depth_of(xy: np.ndarray) -> np.ndarray:
+    """The z that :func:`relayout` gives a landmark at crop px ``xy`` (*, 2): ``0.5 x - 0.25 y + 3``."""
+    xy = np.asarray(xy, np.float64)
+    return 0.5 * xy[..., 0] - 0.25 * xy[..., 1] + 3.0
+
+
+def presence_logit(p):
+    """The presence logit of :func:`relayout` for a format-1 presence score ``p``: ``10 (p - 0.5)``."""
+    return 10.0 * (np.asarray(p, np.float64) - 0.5)
+
+
+def relayout(model, spec: dict, layout: str):
+    """A format-1 synthetic detector (landmarks (N, L, 2) crop px [, confidence (N, L) probability]
+    [, face_score (N,)]) re-exported in a version-2 layout, with the matching version-2 spec.
+
+    The new outputs are computed from the old ones by appended ONNX nodes, so the decoded landmarks
+    must equal the format-1 ones. Layouts (:data:`LAYOUTS_V2`):
+
+    * ``xyz_4d_corner``: MediaPipe face-mesh style: landmarks ``(N, 1, 1, 3L)`` interleaved x, y, z in
+      ``crop_corner_pixels`` (z = :func:`depth_of`), presence ``(N, 1, 1, 1)`` logit
+      (:func:`presence_logit`), confidence ``(N, 1, L)`` logit.
+    * ``planar_unit``: ``(N, 2, L)`` planar in ``crop_unit``.
+    * ``planar_flat_xyz_signed``: ``(N, 3L)`` planar x..., y..., z... in ``crop_signed``.
+    * ``heatmap``: ``(N, L, H/4, W/4)`` Gaussian heatmaps (sigma 1.5 heatmap px), probability values.
+    * ``heatmap_hwl_logit``: the same as ``(N, H/4, W/4, L)`` logits.
+    """
+    import copy
+
+    onnx, TensorProto, helper, _ = _onnx()
+    g = model.graph
+    outs = {o.name: o for o in g.output}
+    n_dim = outs["landmarks"].type.tensor_type.shape.dim[0]
+    n = n_dim.dim_value if n_dim.dim_value > 0 else (n_dim.dim_param or "N")
+    L = outs["landmarks"].type.tensor_type.shape.dim[1].dim_value
+    w, h = spec["input"]["size"]
+    nodes, inits, new_outputs = [], [], []
+    c = lambda name, arr: inits.append(_const(name, np.asarray(arr)))
+    node = lambda op, i, o, **kw: nodes.append(helper.make_node(op, i, o, **kw))
+    new = copy.deepcopy(spec)
+    new["version"] = 2
+    out = new["outputs"]
+    c("v2_half", np.float32(0.5))
+    c("v2_ax2", np.array([2], np.int64))
+    c("v2_s0", np.array([0], np.int64))
+    c("v2_s1", np.array([1], np.int64))
+    c("v2_s2", np.array([2], np.int64))
+    node("Slice", ["landmarks", "v2_s0", "v2_s1", "v2_ax2"], ["v2_x"])   # (N, L, 1)
+    node("Slice", ["landmarks", "v2_s1", "v2_s2", "v2_ax2"], ["v2_y"])
+
+    def add_z():
+        c("v2_zx", np.float32(0.5))
+        c("v2_zy", np.float32(0.25))
+        c("v2_z0", np.float32(3.0))
+        node("Mul", ["v2_x", "v2_zx"], ["v2_zx_"])
+        node("Mul", ["v2_y", "v2_zy"], ["v2_zy_"])
+        node("Sub", ["v2_zx_", "v2_zy_"], ["v2_zd"])
+        node("Add", ["v2_zd", "v2_z0"], ["v2_z"])
+
+    if layout in ("xyz_4d_corner", "planar_unit", "planar_flat_xyz_signed"):
+        if layout == "xyz_4d_corner":
+            node("Add", ["landmarks", "v2_half"], ["v2_xy"])
+            frame = "crop_corner_pixels"
+        else:
+            c("v2_wh", np.array([w, h], np.float32))
+            node("Add", ["landmarks", "v2_half"], ["v2_xyh"])
+            node("Div", ["v2_xyh", "v2_wh"], ["v2_unit"])
+            if layout == "planar_unit":
+                frame, xy = "crop_unit", "v2_unit"
+            else:
+                c("v2_two", np.float32(2.0))
+                c("v2_one", np.float32(1.0))
+                node("Mul", ["v2_unit", "v2_two"], ["v2_u2"])
+                node("Sub", ["v2_u2", "v2_one"], ["v2_signed"])
+                frame, xy = "crop_signed", "v2_signed"
+            node("Identity", [xy], ["v2_xy"])
+        comps = "xyz" if layout != "planar_unit" else "xy"
+        if comps == "xyz":
+            add_z()
+            if layout == "planar_flat_xyz_signed":
+                # z in output units: crop_signed length = input px / (W / 2)
+                c("v2_zscale", np.float32(2.0 / w))
+                node("Mul", ["v2_z", "v2_zscale"], ["v2_zo"])
+            else:
+                node("Identity", ["v2_z"], ["v2_zo"])
+            node("Concat", ["v2_xy", "v2_zo"], ["v2_xyz"], axis=2)
+            src = "v2_xyz"
+        else:
+            src = "v2_xy"
+        k = len(comps)
+        if layout == "xyz_4d_corner":
+            c("v2_shape", np.array([-1, 1, 1, k * L], np.int64))
+            node("Reshape", [src, "v2_shape"], ["lm_out"])
+            shape, order = [n, 1, 1, k * L], "interleaved"
+        else:
+            node("Transpose", [src], ["v2_planar"], perm=[0, 2, 1])   # (N, C, L)
+            order = "planar"
+            if layout == "planar_unit":
+                node("Identity", ["v2_planar"], ["lm_out"])
+                shape = [n, k, L]
+            else:
+                c("v2_shape", np.array([-1, k * L], np.int64))
+                node("Reshape", ["v2_planar", "v2_shape"], ["lm_out"])
+                shape = [n, k * L]
+        new_outputs.append(helper.make_tensor_value_info("lm_out", TensorProto.FLOAT, shape))
+        out["landmarks"] = {"name": "lm_out", "frame": frame, "components": comps, "order": order}
+    elif layout in ("heatmap", "heatmap_hwl_logit"):
+        s = HEATMAP_STRIDE
+        wh_, hh_ = w // s, h // s
+        c("v2_stride", np.float32(s))
+        c("v2_gx", np.arange(wh_, dtype=np.float32).reshape(1, 1, 1, wh_))
+        c("v2_gy", np.arange(hh_, dtype=np.float32).reshape(1, 1, hh_, 1))
+        c("v2_ax3", np.array([3], np.int64))
+        c("v2_k", np.float32(-1.0 / (2 * HEATMAP_SIGMA ** 2)))
+        for a in ("x", "y"):   # heatmap px u = (x + 0.5) / s - 0.5
+            node("Add", [f"v2_{a}", "v2_half"], [f"v2_{a}h"])
+            node("Div", [f"v2_{a}h", "v2_stride"], [f"v2_{a}s"])
+            node("Sub", [f"v2_{a}s", "v2_half"], [f"v2_{a}u"])
+            node("Unsqueeze", [f"v2_{a}u", "v2_ax3"], [f"v2_{a}u4"])   # (N, L, 1, 1)
+            node("Sub", [f"v2_g{a}", f"v2_{a}u4"], [f"v2_d{a}"])
+            node("Mul", [f"v2_d{a}", f"v2_d{a}"], [f"v2_d{a}2"])
+        node("Add", ["v2_dx2", "v2_dy2"], ["v2_e"])        # (N, L, Hh, Wh)
+        node("Mul", ["v2_e", "v2_k"], ["v2_loggauss"])
+        node("Exp", ["v2_loggauss"], ["v2_hm"])
+        hm_spec: dict = {}
+        if layout == "heatmap":
+            node("Identity", ["v2_hm"], ["lm_out"])
+            shape = [n, L, hh_, wh_]
+        else:
+            # logit = log g - log(1 - g), with g kept below 1 so that it stays finite
+            c("v2_gmax", np.float32(1 - 1e-6))
+            c("v2_gmin", np.float32(0.0))
+            c("v2_one_", np.float32(1.0))
+            node("Clip", ["v2_hm", "v2_gmin", "v2_gmax"], ["v2_hmc"])
+            node("Sub", ["v2_one_", "v2_hmc"], ["v2_1mg"])
+            node("Log", ["v2_1mg"], ["v2_l1mg"])
+            node("Sub", ["v2_loggauss", "v2_l1mg"], ["v2_logit"])
+            node("Transpose", ["v2_logit"], ["lm_out"], perm=[0, 2, 3, 1])
+            shape = [n, hh_, wh_, L]
+            hm_spec = {"layout": "HWL", "values": "logit"}
+        new_outputs.append(helper.make_tensor_value_info("lm_out", TensorProto.FLOAT, shape))
+        out["landmarks"] = {"name": "lm_out", "kind": "heatmap", **({"heatmap": hm_spec} if hm_spec else {})}
+    else:
+        raise ValueError(f"unknown layout {layout!r}; one of {LAYOUTS_V2}")
+
+    if "confidence" in outs and layout == "xyz_4d_corner":
+        c("v2_cone", np.float32(1.0))
+        node("Log", ["confidence"], ["v2_lc"])
+        node("Sub", ["v2_cone", "confidence"], ["v2_1mc"])
+        node("Log", ["v2_1mc"], ["v2_l1mc"])
+        node("Sub", ["v2_lc", "v2_l1mc"], ["v2_clogit"])
+        c("v2_cshape", np.array([-1, 1, L], np.int64))
+        node("Reshape", ["v2_clogit", "v2_cshape"], ["conf_out"])
+        new_outputs.append(helper.make_tensor_value_info("conf_out", TensorProto.FLOAT, [n, 1, L]))
+        out["confidence"] = {"name": "conf_out", "kind": "logit"}
+    elif "confidence" in outs:
+        new_outputs.append(outs["confidence"])
+    if "face_score" in outs and "presence" in spec["outputs"]:
+        c("v2_ten", np.float32(10.0))
+        node("Sub", ["face_score", "v2_half"], ["v2_pc"])
+        node("Mul", ["v2_pc", "v2_ten"], ["v2_plogit"])
+        c("v2_pshape", np.array([-1, 1, 1, 1], np.int64))
+        node("Reshape", ["v2_plogit", "v2_pshape"], ["presence_out"])
+        new_outputs.append(helper.make_tensor_value_info("presence_out", TensorProto.FLOAT, [n, 1, 1, 1]))
+        thr = float(1.0 / (1.0 + np.exp(-presence_logit(spec["outputs"]["presence"]["threshold"]))))
+        out["presence"] = {"name": "presence_out", "kind": "logit", "threshold": thr}
+    graph = helper.make_graph(list(g.node) + nodes, "synthetic_v2", list(g.input), new_outputs,
+                              initializer=list(g.initializer) + inits)
+    m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="capture")
+    m.ir_version = IR_VERSION
+    onnx.checker.check_model(m)
+    return m, new

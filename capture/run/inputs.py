@@ -229,12 +229,16 @@ def resolve_inputs(cfg: RunConfig) -> RunInputs:
     emb_file = embedding_path(actor.path, detector.name)
     if not emb_file.is_file():
         raise CaptureError(f"actor '{actor.name}' has no landmark embedding for detector '{detector.name}' "
-                           f"({emb_file} is missing); make one with capture.detector.embedding_from_vertices or "
-                           f"embedding_from_points and write_embedding (docs/detector_spec.md, 'Landmark embeddings')")
+                           f"({emb_file} is missing); make one with 'capture actor embed {cfg.actor} --detector "
+                           f"{det_path} --vertices/--triangles/--points/--mesh ...' (docs/byo_detector.md)")
     emb = read_embedding(actor.path, detector.name, actor.template, detector.count)
     points = embedded_points(emb, actor.template)
     out = Path(cfg.out) if cfg.out is not None else Path("runs") / Path(cfg.video).stem
     notes = [camera.note]
+    from capture.actor.package import is_bundled
+
+    if is_bundled(actor.path):
+        notes.append(f"actor '{cfg.actor}': the bundled actor {actor.path}")
     if cfg.detector is None:
         notes.append(f"detector {det_path} (found beside the video)")
     return RunInputs(config=cfg, out=out, video_info=info, video_id=video_identity(cfg.video),

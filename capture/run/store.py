@@ -33,10 +33,13 @@ RUN_JSON = "run.json"
 RUN_FORMAT = "capture-run"
 #: What a run folder may hold (removed by ``--overwrite`` when the folder holds another take).
 OWNED = ("run.json", "report.json", "report.html", "export.json", "landmarks.npz", "detections", "fit", "meshes",
-         "params.npz", "curves.csv", "take.usd", "take.usda", "take.usdc", "overlay.mp4")
+         "params.npz", "curves.csv", "take.usd", "take.usda", "take.usdc", "overlay.mp4", "detect")
 #: Files ``capture batch`` keeps in a take's run folder (its log and state); they may be there before
 #: the folder is claimed (a take that failed on its input) and are not removed by ``--overwrite``.
 BATCH_FILES = ("batch_take.json", "batch_take.log")
+#: What ``capture detect`` writes into the same folder (the shared detection cache and its outputs); a
+#: folder holding only these is claimed like an empty one.
+DETECT_FILES = ("detections", "detect")
 
 
 def digest(obj: Any) -> str:
@@ -92,8 +95,10 @@ def _claim_mode(out: Path, take_id: str, overwrite: bool) -> str:
     if out.exists() and not out.is_dir():
         raise CaptureError(f"--out {out} is a file; give a folder")
     # Hidden files (such as the temporary sibling of an atomic write in progress by a concurrent task of
-    # the same take, the lock, a staged replacement) and the batch's files do not make a folder "not empty".
-    if not out.exists() or not any(p.name not in BATCH_FILES and not p.name.startswith(".") for p in out.iterdir()):
+    # the same take, the lock, a staged replacement), the batch's files and capture detect's outputs do not make a
+    # folder "not empty".
+    if not out.exists() or not any(p.name not in BATCH_FILES + DETECT_FILES and not p.name.startswith(".")
+                                   for p in out.iterdir()):
         return "here"
     prev = read_json(out / RUN_JSON)
     if not isinstance(prev, dict) or prev.get("format") != RUN_FORMAT:
