@@ -26,10 +26,16 @@ from dataclasses import dataclass
 import torch
 
 from calib.projection import project_points
-from models.fit import (ActorAtPoints, FramePose, Observations, SequenceFit, compose_poses, monocular_priors,
-                        observation_weights, robust_2d)
+from models.fit_energy import monocular_priors, observation_weights, robust_2d
+from models.fit_state import (
+    ActorAtPoints,
+    FramePose,
+    Observations,
+    SequenceFit,
+    compose_poses,
+)
 
-__all__ = ["LMResult", "solve_base", "so3_exp", "projection_jacobian"]
+__all__ = ["LMResult", "projection_jacobian", "so3_exp", "solve_base"]
 
 
 def so3_exp(v: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,77 @@
+"""Settings of a sequence fit (:class:`FitSettings`) and the named presets (:data:`FIT_PRESETS`).
+
+Shared by the fit's state (:mod:`models.fit_state`), energy (:mod:`models.fit_energy`) and solvers
+(:mod:`models.fit`, :mod:`models.fit_lm`); see :mod:`models.fit` for the method.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Settings of one sequence fit (saved with every run)."""
+
+    iterations: int = 500
+    lr: float = 5e-3
+    lr_final_fraction: float = 0.1
+    """Cosine decay to this fraction of ``lr``; 1.0 keeps it constant (the paper)."""
+    code_dim: int = 32
+    hidden: int = 128
+    coeff_weight: float = 0.0075
+    temporal_weight: float = 0.05
+    length_unit_mm: float = 10.0
+    robust_px: float = 3.0
+    """Scale of the pseudo-Huber 2D loss in pixels (quadratic below, linear above); 0 = squared."""
+    seed: int = 0
+    warm_iterations: int | None = 150
+    """Iterations of a window warm-started from the previous one (None: ``iterations``)."""
+    early_stop_tol: float = 0.0
+    """Stop when the mean loss of the last ``early_stop_every`` iterations improved on the block
+    before by less than this fraction (0 = run all iterations, the paper)."""
+    early_stop_every: int = 25
+    pose_accel_weight: float = 0.0
+    """Weight of the squared second differences over frames of the head and jaw transforms
+    (translations in ``length_unit_mm``, rotation matrices unit-free): a smooth-motion prior that
+    removes per-frame depth jitter of monocular fits. Not in the paper (0 there). This and the next
+    two priors apply to 2D fits only (:func:`monocular_priors`)."""
+    coeff_temporal_weight: float = 0.0
+    """Weight of the squared first differences over frames of the coefficients ``w_j(c)`` (mean over
+    points): keeps expressions from flickering. Not in the paper (0 there)."""
+    jaw_prior_weight: float = 0.0
+    """Weight of the squared distance of the jaw transform from rest (translation in
+    ``length_unit_mm``, rotation matrix minus identity): the jaw's translation along the view and an
+    opening expression explain landmarks almost alike, and this keeps the jaw where nothing moves it.
+    Not in the paper (0 there)."""
+    lm_iterations: int = 0
+    """Levenberg-Marquardt iterations on each frame's *base* (head and jaw pose, one coefficient
+    offset per expression; :mod:`models.fit_lm`) before the Adam iterations, with the networks'
+    outputs held fixed. 0 = none (the paper)."""
+    lm_polish_iterations: int = 0
+    """The same after the Adam iterations (0 = none)."""
+    lm_tol: float = 1e-6
+    """Levenberg-Marquardt stops when an accepted step lowers the energy by less than this fraction."""
+    adam_on_landmarks: bool = True
+    """Run the Adam iterations on 2D landmark fits (3D fits always run them). False: a 2D fit is the
+    Levenberg-Marquardt solve of the base alone and the networks keep their zero start (on synthetic
+    takes with 1,000 landmarks the Adam phase changed the error by < 0.001 mm at 10x the time)."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+FIT_PRESETS: dict[str, FitSettings] = {
+    # hidden 64: 3x cheaper than 128 per iteration at the same accuracy on synthetic takes;
+    # temporal 0.5: codes of neighbouring frames held closer than the paper's 0.05, which halves the
+    # per-frame depth jitter of monocular fits (benchmarks/bench_fit.py).
+    # The base (head and jaw pose, per-frame coefficient offsets) by Levenberg-Marquardt before and
+    # after Adam, with smooth-motion, jaw-at-rest and coefficient-smoothness priors; on 2D takes the
+    # solve is the base alone (adam_on_landmarks). Weights chosen on a synthetic 1280x720 take of the
+    # demo actor with 1,000 landmarks (benchmarks/bench_fit.py, BENCHMARKS.md "Take fitting").
+    "default": FitSettings(hidden=64, lr=1e-2, temporal_weight=0.5, early_stop_tol=2e-3, lm_iterations=10,
+                           lm_polish_iterations=10, pose_accel_weight=10.0, coeff_temporal_weight=1.0,
+                           jaw_prior_weight=0.01, adam_on_landmarks=False),
+    "paper": FitSettings(iterations=10_000, lr=1e-3, lr_final_fraction=1.0, coeff_weight=0.75, robust_px=0.0,
+                         warm_iterations=None),
+}
