@@ -42,6 +42,7 @@ from models.fit_energy import (  # noqa: F401
     observation_weights,
     robust_2d,
 )
+from models.fit_field import solve_field
 from models.fit_lm import solve_base
 from models.fit_settings import FIT_PRESETS, FitSettings  # noqa: F401
 from models.fit_state import (  # noqa: F401
@@ -104,6 +105,11 @@ def fit_sequence(actor: ActorAtPoints, obs: Observations, settings: FitSettings,
             before = sum(history[-2 * every:-every]) / every
             if before - last < settings.early_stop_tol * abs(before):
                 break
+    field = settings.field_centres > 0 and settings.field_iterations > 0 and obs.points2d is not None
+    if field:
+        n_lm += solve_field(fit, actor, obs, settings.field_iterations)
     if settings.lm_polish_iterations > 0:
         n_lm += solve_base(fit, actor, obs, settings.lm_polish_iterations).iterations
+        if field:
+            n_lm += solve_field(fit, actor, obs, settings.field_iterations)
     return FitResult(fit=fit, losses=history, seconds=time.perf_counter() - t0, lm_iterations=n_lm)

@@ -56,6 +56,19 @@ class FitSettings:
     """Run the Adam iterations on 2D landmark fits (3D fits always run them). False: a 2D fit is the
     Levenberg-Marquardt solve of the base alone and the networks keep their zero start (on synthetic
     takes with 1,000 landmarks the Adam phase changed the error by < 0.001 mm at 10x the time)."""
+    field_centres: int = 0
+    """Per-point coefficient field of 2D fits (:mod:`models.fit_field`): ``w_j(c)`` gets
+    ``sum_b phi_b(c) a_jb`` with ``phi`` normalised Gaussians around this many centres (farthest-point
+    samples of the fit points) and per-frame ``a_jb (E,)`` solved by Gauss-Newton with the poses fixed.
+    0 = none (the paper; 3D fits leave the spatial detail to F_W)."""
+    field_sigma_mm: float = 12.0
+    """Width of the field's Gaussians (mm on the template)."""
+    field_weight: float = 0.0
+    """Weight of the mean squared field coefficient ``a`` (keeps the field at 0 where landmarks say nothing)."""
+    field_temporal_weight: float = 0.0
+    """Weight of the squared first differences over frames of ``a`` (summed over centres and expressions)."""
+    field_iterations: int = 0
+    """Gauss-Newton iterations of the field after each Levenberg-Marquardt solve of the base."""
 
     def to_dict(self) -> dict:
         return asdict(self)

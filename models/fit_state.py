@@ -118,6 +118,25 @@ class SequenceFit(nn.Module):
         self.register_buffer("jaw_t0", head_t0.new_zeros(n_frames, 3))
         self.register_buffer("coeff0", head_t0.new_zeros(n_frames, n_expressions))
         self.register_buffer("eye6", torch.tensor(IDENTITY_6D).to(head_t0))
+        # the per-point coefficient field (models.fit_field): centres (B, 3) mm and coefficients (J, B, E)
+        B = settings.field_centres
+        self.register_buffer("field_centres", head_t0.new_zeros(B, 3))
+        self.register_buffer("field", head_t0.new_zeros(n_frames, B, n_expressions))
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """As :meth:`torch.nn.Module.load_state_dict`; states saved without a coefficient field (older
+        runs, or fits without one) load with the field at zero."""
+        state = dict(state_dict)
+        for k in ("field_centres", "field"):
+            if k not in state:
+                state[k] = getattr(self, k).clone()
+        return super().load_state_dict(state, strict=strict, assign=assign)
+
+    def field_basis(self, points: torch.Tensor) -> torch.Tensor:
+        """``phi (P, B)``: the field's normalised Gaussians at template points ``(P, 3)`` mm."""
+        from models.fit_field import rbf_basis
+
+        return rbf_basis(points, self.field_centres, self.settings.field_sigma_mm)
 
     def net_poses(self) -> FramePose:
         """F_T's corrections: rotations ``(J, 3, 3)`` (right-multiplied) and translations ``(J, 3)`` mm (added)."""
@@ -136,24 +155,31 @@ class SequenceFit(nn.Module):
         return self.net_coefficients(actor, points, frames) + self.coeff0[sl, None, :]
 
     def net_is_zero(self) -> bool:
-        """True while F_W's last layer is exactly zero (its start): ``w_j(c)`` is then ``coeff0`` everywhere."""
+        """True while F_W's last layer and the coefficient field are exactly zero (their start):
+        ``w_j(c)`` is then ``coeff0`` everywhere."""
         last = self.F_W.net[-1]
-        return not (bool(last.weight.any()) or bool(last.bias.any()))
+        return not (bool(last.weight.any()) or bool(last.bias.any()) or bool(self.field.any()))
 
     def net_coefficients(self, actor: ActorAtPoints, points: torch.Tensor | None = None,
                          frames: slice | None = None) -> torch.Tensor:
-        """F_W's part of ``w_j(c)`` ``(J, P, E)`` (without the base offset ``coeff0``)."""
+        """F_W's part of ``w_j(c)`` ``(J, P, E)`` plus the coefficient field's (without the base offset ``coeff0``)."""
         c = actor.points if points is None else points
         codes = self.codes if frames is None else self.codes[frames]
-        if not torch.is_grad_enabled() and self.net_is_zero():
-            return c.new_zeros(codes.shape[0], c.shape[0], self.F_W.net[-1].out_features)
-        x = (c - actor.center) / actor.scale
-        # F_W's first layer on [z_j, c] split into a per-frame and a per-point part (the same
-        # function as concatenating the inputs, without building the (J, P, f + 3) input).
-        first = self.F_W.net[0]
-        f = codes.shape[1]
-        h = (codes @ first.weight[:, :f].T)[:, None, :] + (x @ first.weight[:, f:].T + first.bias)[None]
-        return self.F_W.net[1:](h)
+        last = self.F_W.net[-1]
+        if not torch.is_grad_enabled() and not (bool(last.weight.any()) or bool(last.bias.any())):
+            out = c.new_zeros(codes.shape[0], c.shape[0], last.out_features)   # F_W at its zero start
+        else:
+            x = (c - actor.center) / actor.scale
+            # F_W's first layer on [z_j, c] split into a per-frame and a per-point part (the same
+            # function as concatenating the inputs, without building the (J, P, f + 3) input).
+            first = self.F_W.net[0]
+            f = codes.shape[1]
+            h = (codes @ first.weight[:, :f].T)[:, None, :] + (x @ first.weight[:, f:].T + first.bias)[None]
+            out = self.F_W.net[1:](h)
+        if self.field.shape[1] and bool(self.field.any()):
+            field = self.field if frames is None else self.field[frames]
+            out = out + self.field_basis(c) @ field                                 # (P, B) @ (J, B, E)
+        return out
 
 
 def compose_poses(head_R0: torch.Tensor, head_t0: torch.Tensor, jaw_R0: torch.Tensor, jaw_t0: torch.Tensor,
