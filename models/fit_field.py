@@ -40,7 +40,10 @@ from models.fit_lm import projection_jacobian
 from models.fit_state import ActorAtPoints, Observations, SequenceFit
 from models.lbs import lbs_jaw
 
-__all__ = ["farthest_points", "field_energy", "rbf_basis", "solve_block_tridiagonal", "solve_field"]
+#: Centres per point in the Gauss-Newton matrix of the field (see _FieldProblem.normal_equations).
+NEAREST_CENTRES = 4
+
+__all__ = ["farthest_points", "field_centres", "field_energy", "rbf_basis", "solve_block_tridiagonal", "solve_field"]
 
 
 def rbf_basis(points: torch.Tensor, centres: torch.Tensor, sigma_mm: float) -> torch.Tensor:
@@ -64,6 +67,15 @@ def farthest_points(points: torch.Tensor, n: int) -> torch.Tensor:
         idx.append(int(torch.argmax(d)))
         d = torch.minimum(d, (x - x[idx[-1]]).square().sum(1))
     return points[torch.tensor(idx)]
+
+
+def field_centres(actor: ActorAtPoints, n: int, min_motion_mm: float = 1.0) -> torch.Tensor:
+    """``n`` centres ``(n, 3)``: farthest points among the fit points that the actor's expressions move
+    (``sqrt(sum_e |E_e(c)|^2) >= min_motion_mm``; all points when fewer than ``n`` do): a field
+    where nothing moves could only move nothing, so its centres go where the expressions act."""
+    motion = actor.expressions.detach().square().sum((-1, -2)).sqrt()
+    moving = actor.points.detach()[motion >= min_motion_mm]
+    return farthest_points(moving if moving.shape[0] >= n else actor.points.detach(), n)
 
 
 def solve_block_tridiagonal(D: torch.Tensor, U: torch.Tensor, g: torch.Tensor) -> torch.Tensor | None:
@@ -148,12 +160,18 @@ class _FieldProblem:
         G = torch.einsum("jpib,peb->jpie", JR, self.E_basis)                             # (J, P, 2, E)
         Q = torch.einsum("jpie,jpif->jpef", G, G).reshape(J, P, E * E).float()          # (J, P, E^2)
         gp = torch.einsum("jpie,jpi->jpe", G, sw * r)                                    # (J, P, E)
-        phi32 = self.phi.float()
+        # H_j[b, e, c, f] = sum_p phi_pb phi_pc Q_p[e, f], accumulated in float32 over each point's
+        # NEAREST_CENTRES largest weights (the rest are < 1e-3 for the default spacing): the Gauss-Newton
+        # matrix shapes the step only; the gradient and the energy that accepts a step are exact.
+        k = min(NEAREST_CENTRES, B)
+        val, idx = torch.topk(self.phi, k, dim=1)                                         # (P, k)
+        pair = (idx[:, :, None] * B + idx[:, None, :]).reshape(-1)                        # (P k k,)
+        pw = (val[:, :, None] * val[:, None, :]).reshape(P, k * k, 1).float()
         D = torch.empty(J, m, m, dtype=torch.float64)
-        for j in range(J):  # H_j[b, e, c, f] = sum_p phi_pb phi_pc Q_p[e, f]; float32 GEMM (it shapes the step only)
-            Z = (phi32[:, :, None] * Q[j][:, None, :]).reshape(P, B * E * E)
-            H = (phi32.T @ Z).reshape(B, B, E, E).permute(0, 2, 1, 3).reshape(m, m)
-            D[j] = H.double()
+        for j in range(J):
+            Hb = torch.zeros(B * B, E * E, dtype=torch.float32)
+            Hb.index_add_(0, pair, (pw * Q[j][:, None, :]).reshape(-1, E * E))
+            D[j] = Hb.reshape(B, B, E, E).permute(0, 2, 1, 3).reshape(m, m).double()
         g = torch.einsum("pb,jpe->jbe", self.phi, gp).reshape(J, m)
         U = torch.zeros(max(J - 1, 0), m, m, dtype=torch.float64)
         eyeE = torch.eye(E, dtype=torch.float64)
@@ -213,7 +231,7 @@ def solve_field(fit: SequenceFit, actor: ActorAtPoints, obs: Observations, itera
         return 0
     with torch.no_grad():
         if not bool(fit.field_centres.any()):
-            fit.field_centres.copy_(farthest_points(actor.points.detach(), fit.field.shape[1]))
+            fit.field_centres.copy_(field_centres(actor, fit.field.shape[1]))
     prob = _FieldProblem(fit, actor, obs)
     J, m = prob.J, prob.B * prob.E
     a = prob.a0.clone()
