@@ -21,7 +21,7 @@ import shutil
 import time
 from pathlib import Path
 
-from capture.batch import BatchConfig, run_batch
+from capture.batch.runner import BatchConfig, run_batch
 from capture.cli import main as capture_main
 
 

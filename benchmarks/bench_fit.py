@@ -1,4 +1,4 @@
-"""Speed and accuracy of the take-level fit (``capture.fit_take``): default preset vs the paper's.
+"""Speed and accuracy of the take-level fit (``capture.fit.take``): default preset vs the paper's.
 
 A synthetic take of an ICT-based actor (``capture synth``, preset ``talk``) is fitted from its true
 landmarks plus 0.5 px Gaussian noise. Printed per preset: seconds per frame of each stage, mean and
@@ -36,9 +36,9 @@ import torch
 from scipy.ndimage import gaussian_filter1d
 
 from calib.camera_io import read_camera
-from capture.actor_package import is_actor, load_actor
+from capture.actor.package import is_actor, load_actor
 from capture.cli import main as capture_main
-from capture.fit_take import fit_take, resolved_settings_dict
+from capture.fit.take import TakeLandmarks, WindowedFit, fit_take, resolved_settings_dict
 from models.fit import FIT_PRESETS, FitSettings
 
 # The default preset before the Levenberg-Marquardt base (for the A/B row).
@@ -74,8 +74,8 @@ def run(actor, inputs, settings, window, overlap, threads, frames=None):
         pts, w = pts[frames], w[frames]
     tm: dict = {}
     t0 = time.perf_counter()
-    fits = list(fit_take(actor, pts, w, None, tp, cam, settings, window=window, overlap=overlap, threads=threads,
-                         timings=tm))
+    fits = list(fit_take(actor, TakeLandmarks(pts, w, None, tp), cam,
+                         WindowedFit(settings, window, overlap, threads=threads), timings=tm))
     tm["total_s"] = time.perf_counter() - t0
     return fits, tm
 

@@ -5,7 +5,7 @@ expressions outside its 19 training shapes, at partial weights, mixed with parti
 rigid head motion; several sequences, registered meshes in the actor's topology (9,409 vertices, mm).
 
 * AIM: the actor (default: the bundled demo actor, trained on the sample) fitted with
-  :func:`capture.fit_take.fit_meshes`, the fit behind ``capture fit3d``, with that command's
+  :func:`capture.fit.take.fit_meshes`, the fit behind ``capture fit3d``, with that command's
   defaults (preset ``default``, window 30, overlap 6, 1,000 sampled vertices), one fit per sequence.
 * GBS: per frame, rigid pose + least squares on the SAME 19 training shapes (exact ICT deltas of the
   identity; weights bounded to [0, 1], and unbounded), every vertex constrained (:mod:`benchmarks.gbs`).
@@ -59,15 +59,15 @@ def stats(err: np.ndarray) -> dict:
 def fit_aim(actor, meshes: np.ndarray, sequence: np.ndarray, settings, window: int, overlap: int, samples: int,
             threads: int) -> tuple[np.ndarray, dict]:
     """``fit_meshes`` once per sequence -> (fitted vertices (T, V, 3), timings)."""
-    from capture.fit_take import fit_meshes
+    from capture.fit.take import WindowedFit, fit_meshes
 
     out = np.empty_like(meshes, dtype=np.float32)
     tm: dict = {}
     t0 = time.perf_counter()
     for s in np.unique(sequence):
         idx = np.flatnonzero(sequence == s)
-        for f in fit_meshes(actor, meshes[idx], settings, window=window, overlap=overlap, n_samples=samples,
-                            threads=threads, timings=tm):
+        for f in fit_meshes(actor, meshes[idx], WindowedFit(settings, window, overlap, threads=threads),
+                            n_samples=samples, timings=tm):
             out[idx[f.frame]] = f.vertices
         print(f"  AIM: sequence {s} fitted ({len(idx)} frames, {time.perf_counter() - t0:.0f} s so far)", flush=True)
     tm["total_s"] = time.perf_counter() - t0
@@ -143,8 +143,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     import torch
 
-    from capture.actor_package import load_actor
-    from capture.atomic import write_text
+    from capture.actor.package import load_actor
+    from capture.io.atomic import write_text
     from models.fit import FIT_PRESETS
 
     torch.set_num_threads(args.threads)

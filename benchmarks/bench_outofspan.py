@@ -73,11 +73,11 @@ def figures(V: np.ndarray, truth: np.ndarray, rms: np.ndarray, masks: dict, seco
 
 
 def fit_aim(actor, take, idx, settings, window, overlap):
-    from capture.fit_take import fit_take
+    from capture.fit.take import TakeLandmarks, WindowedFit, fit_take
 
     t0 = time.perf_counter()
-    fr = list(fit_take(actor, take.points2d[idx], take.weights[idx], None, take.template_points, take.camera,
-                       settings, window=window, overlap=overlap, threads=1))
+    fr = list(fit_take(actor, TakeLandmarks(take.points2d[idx], take.weights[idx], None, take.template_points),
+                       take.camera, WindowedFit(settings, window, overlap, threads=1)))
     return (np.stack([f.vertices for f in fr]), np.array([f.reprojection_rms_px for f in fr]),
             time.perf_counter() - t0)
 
@@ -108,8 +108,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     import torch
 
-    from capture.actor_package import load_actor
-    from capture.atomic import write_text
+    from capture.actor.package import load_actor
+    from capture.io.atomic import write_text
     from models.fit import FIT_PRESETS
 
     torch.set_num_threads(1)

@@ -113,7 +113,7 @@ def _ict_identity_b(work: Path) -> Path:
     """Shapes of a second ICT identity in the sample's topology (mm); returns the shapes folder."""
     import trimesh
 
-    from capture.sample_data import sample_shapes_dir
+    from capture.actor.sample import sample_shapes_dir
 
     z = np.load(Path(__file__).resolve().parents[2] / "shared" / "assets" / "ict_facekit" / "derived" /
                 "ict_facekit_light.npz", allow_pickle=False)
@@ -130,7 +130,7 @@ def _ict_identity_b(work: Path) -> Path:
 def ict_identity_check(work: Path, demo: Path, run: Path, quick: bool) -> None:
     import torch
 
-    from capture.actor_package import load_actor
+    from capture.actor.package import load_actor
     from models.rotation import matrix_to_rot6d
 
     shapes = _ict_identity_b(work)

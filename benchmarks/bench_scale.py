@@ -5,7 +5,7 @@ One synthetic take (``capture synth``, bundled demo actor, preset ``talk``, 640x
 10,000 landmarks) is rendered once; the 100- and 1,000-landmark sets are farthest-point subsets of the
 10,000 (on the template), and longer takes repeat the 100 frames back and forth (ping-pong, so the
 motion stays continuous). True landmarks + 0.5 px noise. Every configuration runs in a fresh child
-process, which streams :func:`capture.fit_take.fit_take` (no frame is kept) and reports ms per
+process, which streams :func:`capture.fit.take.fit_take` (no frame is kept) and reports ms per
 frame, mean 3D error (mm) and its peak resident memory (``ru_maxrss``, MB).
 
 * landmark series: 100 frames, 100 / 1,000 / 10,000 landmarks;
@@ -56,8 +56,8 @@ def child(cfg: dict) -> dict:
     """One configuration (run in its own process): fit, stream, measure."""
     import torch
 
-    from capture.actor_package import load_actor
-    from capture.fit_take import farthest_point_sample, fit_take
+    from capture.actor.package import load_actor
+    from capture.fit.take import TakeLandmarks, WindowedFit, farthest_point_sample, fit_take
     from models.fit import FIT_PRESETS
 
     torch.set_num_threads(cfg["threads"])
@@ -75,8 +75,8 @@ def child(cfg: dict) -> dict:
     tm: dict = {}
     t0 = time.perf_counter()
     err_sum, n = 0.0, 0
-    for f in fit_take(actor, pts, w, None, inp.template_points[lm], inp.camera, settings, threads=cfg["threads"],
-                      timings=tm):
+    for f in fit_take(actor, TakeLandmarks(pts, w, None, inp.template_points[lm]), inp.camera,
+                      WindowedFit(settings, threads=cfg["threads"]), timings=tm):
         err_sum += float(np.linalg.norm(f.vertices - inp.truth[idx[f.frame]], axis=1).mean())
         n += 1
     total = time.perf_counter() - t0
@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.child:
         print(json.dumps(child(json.loads(args.child))))
         return {}
-    from capture.atomic import write_text
+    from capture.io.atomic import write_text
 
     lengths = [int(v) for v in args.lengths.split(",")]
     counts = [int(v) for v in args.landmarks.split(",")]

@@ -3,7 +3,7 @@
 Takes (``capture synth`` with the bundled demo actor, 1280x720, 100 frames each by default) differ in
 seed, motion preset, landmark density (100 / 300 / 1,000) and landmark noise (0.5 / 1.5 px Gaussian
 on the true landmarks); one is rendered with lens distortion. Each is fitted with
-:func:`capture.fit_take.fit_take` (the fit behind ``capture run``):
+:func:`capture.fit.take.fit_take` (the fit behind ``capture run``):
 
 * default preset on the whole take: mean / p95 3D vertex error (mm), reprojection RMS (px), jitter
   (RMS of the high-passed vertex trajectories, fit and truth, and their difference), ms per frame
@@ -52,7 +52,7 @@ TAKES = [
 
 def fit(actor, inp, settings, window, overlap, threads, frames: slice | None = None):
     """Fit (a slice of) a take; returns (vertices (T, V, 3), rms px (T,), stage timings)."""
-    from capture.fit_take import fit_take
+    from capture.fit.take import TakeLandmarks, WindowedFit, fit_take
 
     pts, w = inp.points2d, inp.weights
     if frames is not None:
@@ -60,8 +60,8 @@ def fit(actor, inp, settings, window, overlap, threads, frames: slice | None = N
     tm: dict = {}
     t0 = time.perf_counter()
     V, rms = [], []
-    for f in fit_take(actor, pts, w, None, inp.template_points, inp.camera, settings, window=window,
-                      overlap=overlap, threads=threads, timings=tm):
+    for f in fit_take(actor, TakeLandmarks(pts, w, None, inp.template_points), inp.camera,
+                      WindowedFit(settings, window, overlap, threads=threads), timings=tm):
         V.append(f.vertices)
         rms.append(f.reprojection_rms_px)
     tm["total_s"] = time.perf_counter() - t0
@@ -127,8 +127,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     import torch
 
-    from capture.actor_package import load_actor
-    from capture.atomic import write_text
+    from capture.actor.package import load_actor
+    from capture.io.atomic import write_text
     from models.fit import FIT_PRESETS
 
     torch.set_num_threads(args.threads)

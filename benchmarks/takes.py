@@ -101,7 +101,7 @@ def stage_ms(tm: dict, n: int) -> dict:
 
 def save_png(fig, path: Path) -> Path:
     """Write a matplotlib figure atomically."""
-    from capture.atomic import atomic_path
+    from capture.io.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")

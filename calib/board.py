@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 GRAMMAR = (
     "charuco:cols=C,rows=R,square=S,marker=M,dict=NAME[,legacy=0|1] (C x R squares, mm) "

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib.camera import Camera
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 STD_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 #: Lengths of OpenCV distortion vectors (0 means "no distortion").
 DIST_LENGTHS = (0, 4, 5, 8, 12, 14)

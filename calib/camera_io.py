@@ -18,7 +18,7 @@ Only ``K``, ``dist`` and ``image_size`` are required; unknown keys are errors (t
 typos). OpenCV files (``.yaml``, ``.yml``, ``.xml``) are read and written through
 ``cv2.FileStorage`` with the keys ``camera_matrix``, ``distortion_coefficients``, ``image_width``,
 ``image_height`` (and ``avg_reprojection_error`` when known), as OpenCV's calibration sample does.
-Every problem with a file is one :class:`~capture.errors.CaptureError` line naming the file.
+Every problem with a file is one :class:`~capture.io.errors.CaptureError` line naming the file.
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 
 from calib.camera import Camera
-from capture.atomic import atomic_path, write_json
-from capture.errors import CaptureError
+from capture.io.atomic import atomic_path, write_json
+from capture.io.errors import CaptureError
 
 FORMAT = "capture-camera"
 VERSION = 1

@@ -2,7 +2,7 @@
 
 :func:`open_footage` checks the input up front (exists, readable, frame size) and
 :meth:`Footage.frames` yields ``(label, frame_number, gray)`` for evenly spaced candidates, at most
-``max_candidates`` of them. Problems are one-line :class:`~capture.errors.CaptureError` messages.
+``max_candidates`` of them. Problems are one-line :class:`~capture.io.errors.CaptureError` messages.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Iterator
 
 import numpy as np
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 

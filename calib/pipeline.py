@@ -27,8 +27,8 @@ from calib.detect import BoardDetector
 from calib.frames import open_footage
 from calib.plots import save_calibration_plot
 from calib.views import Candidate, Dropped, coverage_fraction, make_candidate, select_views
-from capture.atomic import write_json
-from capture.errors import CaptureError
+from capture.io.atomic import write_json
+from capture.io.errors import CaptureError
 
 REPORT_VERSION = 1
 

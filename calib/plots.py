@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.views import COVERAGE_COLS, cells_of, grid_shape
-from capture.atomic import atomic_path
+from capture.io.atomic import atomic_path
 
 
 def save_calibration_plot(

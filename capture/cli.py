@@ -1,7 +1,7 @@
 """The ``capture`` command line: one program, one sub-command per job.
 
-Each sub-command lives in the module of its concept (``capture.actor_cli``, ``calib.cli``) and is
-registered here. :func:`main` turns :class:`~capture.errors.CaptureError` into a one-line message
+Each sub-command is a thin module of :mod:`capture.commands` (``calib.cli`` for calibration) that parses
+options and calls one function of its package; all are registered here. :func:`main` turns :class:`~capture.io.errors.CaptureError` into a one-line message
 and a non-zero exit status, and an interrupt (Ctrl-C) into exit status 130 with a hint to resume.
 """
 
@@ -12,14 +12,14 @@ import sys
 import typer
 
 from calib.cli import calibrate_command
-from capture.actor_cli import actor_app
-from capture.batch import batch_command
-from capture.demo import demo_command
-from capture.errors import CaptureError
-from capture.run import run_command
-from capture.retarget import retarget_command
-from capture.run_fit3d import fit3d_command
-from capture.synth_cli import synth_command
+from capture.commands.actor import actor_app
+from capture.commands.batch import batch_command
+from capture.commands.demo import demo_command
+from capture.commands.fit3d import fit3d_command
+from capture.commands.retarget import retarget_command
+from capture.commands.run import run_command
+from capture.commands.synth import synth_command
+from capture.io.errors import CaptureError
 
 app = typer.Typer(
     name="capture",

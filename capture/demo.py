@@ -20,9 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import typer
-
-from capture.errors import CaptureError
 
 
 @dataclass(frozen=True)
@@ -50,14 +47,6 @@ def bundled_demo_actor() -> Path | None:
     return p if (p / "actor.json").is_file() else None
 
 
-def _cli(args: list[str]) -> None:
-    from capture.cli import main
-
-    rc = main(args)
-    if rc != 0:
-        raise typer.Exit(rc)
-
-
 def demo_actor(cfg: DemoConfig, say) -> Path:
     actor = cfg.out / "actor"
     if (actor / "actor.json").is_file():
@@ -71,8 +60,14 @@ def demo_actor(cfg: DemoConfig, say) -> Path:
     say(f"actor: no pretrained demo actor bundled; training a QUICK, LOW-ACCURACY actor from the sample "
         f"(width {cfg.train_width}, {cfg.train_iterations} iterations of {cfg.train_points_per_step} points; the real one takes ~25 min: "
         f"capture actor train sample --sample)")
-    _cli(["actor", "train", str(actor), "--sample", "--width", str(cfg.train_width), "--iterations",
-          str(cfg.train_iterations), "--points-per-step", str(cfg.train_points_per_step), "--progress" if cfg.progress else "--no-progress"])
+    from capture.actor.sample import sample_bones, sample_shapes_dir
+    from capture.actor.training import TrainOptions, TrainingProgress, train_actor
+
+    skull, jaw = sample_bones()
+    train_actor(TrainOptions(actor=str(actor), shapes=sample_shapes_dir(), skull=skull, jaw=jaw, units="mm",
+                             overrides=dict(width=cfg.train_width, iterations=cfg.train_iterations,
+                                            points_per_step=cfg.train_points_per_step)),
+                TrainingProgress(enabled=cfg.progress), report=say)
     return actor
 
 
@@ -89,10 +84,12 @@ def run_demo(cfg: DemoConfig, say=print) -> dict:
 
 
 def _run_demo(cfg: DemoConfig, say) -> dict:
-    from capture.run import run_take
-    from capture.run_inputs import RunConfig
-    from capture.run_report import print_summary
-    from capture.run_stages import iter_fits
+    from capture.run.take import run_take
+    from capture.run.inputs import RunConfig
+    from capture.run.report import print_summary
+    from capture.run.stages import iter_fits
+    from capture.synth.progress import synthesize_shown
+    from capture.synth.take import SynthConfig, parse_size
 
     t0 = time.perf_counter()
     cfg.out.mkdir(parents=True, exist_ok=True)
@@ -102,9 +99,9 @@ def _run_demo(cfg: DemoConfig, say) -> dict:
         say(f"take: reusing {take}")
     else:
         say(f"take: rendering {cfg.frames} frames at {cfg.size} with capture synth")
-        _cli(["synth", "--actor", str(actor), "--out", str(take), "--frames", str(cfg.frames), "--size", cfg.size,
-              "--fps", str(cfg.fps), "--landmarks", str(cfg.landmarks), "--preset", "talk", "--overwrite",
-              "--progress" if cfg.progress else "--no-progress"])
+        synthesize_shown(SynthConfig(actor=str(actor), out=take, frames=cfg.frames, size=parse_size(cfg.size),
+                                     fps=cfg.fps, landmarks=cfg.landmarks, preset="talk", overwrite=True),
+                         cfg.progress)
     run_out = cfg.out / "run"
     its = "" if cfg.fit_iterations is None else f" --iterations {cfg.fit_iterations}"
     say(f"run: capture run {take / 'take.mp4'} --actor {actor} --camera {take / 'camera.json'} --out {run_out}{its}")
@@ -126,13 +123,3 @@ def _run_demo(cfg: DemoConfig, say) -> dict:
     say(f"demo: outputs in {run_out} (meshes/, take.usdc, params.npz, landmarks.npz, overlay.mp4, report.json); "
         f"the take and its truth in {take}; {result['seconds']:.0f} s")
     return result
-
-
-def demo_command(
-    out: Path = typer.Option(Path("runs/demo"), "--out", help="Folder for the demo's actor, take and run."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
-) -> None:
-    """The whole pipeline on the bundled sample (actor, synthetic take, capture run, error against the truth)."""
-    if out.exists() and not out.is_dir():
-        raise CaptureError(f"--out {out} is a file; give a folder")
-    run_demo(DemoConfig(out=out, progress=progress), say=typer.echo)

@@ -3,7 +3,7 @@
 What is played is exactly what the run solved: the per-frame head and jaw transforms and the
 coefficient field ``w_j(c) = F_W(z_j, c)`` of each fitted window (``RUN_DIR/fit/<key>/windows/``, the
 :class:`models.fit.SequenceFit` states the fit keeps), blended across window overlaps with the fit's own
-smoothstep (:mod:`capture.fit_take`), so retargeting A onto A reproduces the run's meshes. B's meshes are
+smoothstep (:mod:`capture.fit.take`), so retargeting A onto A reproduces the run's meshes. B's meshes are
 :func:`models.retarget.retarget_points` / :func:`models.retarget.pose_part` (B's anatomy, A's coefficients
 at the corresponding template point).
 
@@ -29,13 +29,12 @@ import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Iterator
 
 import numpy as np
 import torch
-import typer
 
-from capture.errors import CaptureError, Interrupted
+from capture.io.errors import CaptureError, Interrupted
 
 PART_DIRS = {"full": ".", "jaw": "jaw", "soft_tissue": "soft_tissue"}
 
@@ -114,8 +113,8 @@ class SourceRun:
 
 def read_source_run(run_dir: Path) -> SourceRun:
     """Check and read a finished run folder; one-line errors say what is missing and how to get it."""
-    from capture.run_stages import DONE_JSON, EXPORT_JSON
-    from capture.run_store import RUN_FORMAT, RUN_JSON, read_json
+    from capture.run.stages import DONE_JSON, EXPORT_JSON
+    from capture.run.store import RUN_FORMAT, RUN_JSON, read_json
 
     run_dir = Path(run_dir)
     run = read_json(run_dir / RUN_JSON)
@@ -163,7 +162,7 @@ def read_source_run(run_dir: Path) -> SourceRun:
 
 
 def _check_windows(windows: list[tuple[int, dict]], overlap: int, n_frames: int, fit_dir: Path) -> None:
-    """The windows must chain like the fit's plan (:func:`capture.fit_take.window_plan`) over all frames."""
+    """The windows must chain like the fit's plan (:func:`capture.fit.take.window_plan`) over all frames."""
     expect = 0
     for k, (start, state) in enumerate(windows):
         J = int(state["codes"].shape[0])
@@ -177,7 +176,7 @@ def _check_windows(windows: list[tuple[int, dict]], overlap: int, n_frames: int,
 # ------------------------------------------------------------------------------------------ replay
 def replay_vertices(source: SourceRun, actor_points, part: str) -> Iterator[np.ndarray]:
     """Vertices ``(V, 3)`` float32 mm of every take position, blended across overlaps as the fit did."""
-    from capture.fit_take import _smoothstep
+    from capture.fit.take import _smoothstep
     from models.fit import FitSettings
     from models.retarget import window_vertices
 
@@ -190,7 +189,7 @@ def replay_vertices(source: SourceRun, actor_points, part: str) -> Iterator[np.n
         n_held, n_hold = len(held), (0 if k == len(source.windows) - 1 else min(overlap, J - 1))
         for i in range(J - n_hold):
             v = verts[i]
-            if i < n_held:  # the same blend as capture.fit_take._blend
+            if i < n_held:  # the same blend as capture.fit.take._blend
                 a = _smoothstep((i + 1) / (n_held + 1))
                 v = ((1 - a) * held[i] + a * v).astype(np.float32)
             yield v
@@ -199,7 +198,7 @@ def replay_vertices(source: SourceRun, actor_points, part: str) -> Iterator[np.n
 
 def retargeted_fits(source: SourceRun, actor_points, part: str) -> Iterator:
     """The source run's stored frame fits with B's vertices (no landmarks or errors: B was not observed)."""
-    from capture.run_stages import iter_fits
+    from capture.run.stages import iter_fits
 
     verts = replay_vertices(source, actor_points, part)
     for ff in iter_fits(source.fit_dir):
@@ -210,15 +209,15 @@ def retargeted_fits(source: SourceRun, actor_points, part: str) -> Iterator:
 # ----------------------------------------------------------------------------------------- command
 def retarget_run(cfg: RetargetConfig) -> dict:
     """Retarget a finished run onto actor ``cfg.to``; returns the report (also ``OUT/report.json``)."""
-    from capture.actor_package import WEIGHTS, load_actor
+    from capture.actor.package import WEIGHTS, load_actor
     from capture.export import ExportContext, ExportOptions
-    from capture.fit_take import _num_threads
-    from capture.run import base_report
-    from capture.run_inputs import check_device, parse_formats
-    from capture.run_report import write_report
-    from capture.run_stages import export_stage, fit_dir_for, run_fit_cached
-    from capture.run_store import claim_run_dir, digest, file_sha256, write_run_json
-    from capture.signals import sigterm_as_interrupt
+    from capture.fit.take import _num_threads
+    from capture.run.take import base_report
+    from capture.run.inputs import check_device, parse_formats
+    from capture.run.report import write_report
+    from capture.run.stages import export_stage, fit_dir_for, run_fit_cached
+    from capture.run.store import claim_run_dir, digest, file_sha256, write_run_json
+    from capture.io.signals import sigterm_as_interrupt
     from models.retarget import PARTS, retarget_points
 
     t_start = time.perf_counter()
@@ -275,7 +274,7 @@ def retarget_run(cfg: RetargetConfig) -> dict:
     camera = src.camera
 
     def images(frames):
-        from capture.video import VideoReader
+        from capture.io.video import VideoReader
 
         with VideoReader(src.video) as reader:
             yield from reader.frames(frames)
@@ -307,7 +306,7 @@ def retarget_run(cfg: RetargetConfig) -> dict:
             parts_out[part] = {"dir": str(part_dir), "files": len(files),
                                "meshes": sum(f.startswith("meshes/") for f in files)}
 
-    from capture.run_stages import iter_fits
+    from capture.run.stages import iter_fits
 
     status = [str(f.status) for f in iter_fits(src.fit_dir)]
     report = base_report("capture retarget", out, settings, log, t_start)
@@ -327,41 +326,3 @@ def retarget_run(cfg: RetargetConfig) -> dict:
     write_report(out, report)
     write_run_json(out, take_id, label, settings, fingerprints, "done")
     return report
-
-
-def _split(text: str | None) -> tuple[str, ...] | None:
-    return None if text is None or not text.strip() else tuple(t.strip() for t in text.split(",") if t.strip())
-
-
-def retarget_command(
-    run_dir: Path = typer.Argument(..., help="Folder of a finished 'capture run' or 'capture fit3d' of actor A."),
-    to: str = typer.Option(..., "--to", help="Target actor B (name or folder), learned from blendshapes in "
-                           "correspondence with A's (same topology and expression names)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default ./runs/<run name>_on_<B>)."),
-    formats: Optional[str] = typer.Option(None, "--formats", help="Exports: comma-separated obj, ply, usd, npz, "
-                                          "overlay (default: the source run's)."),
-    parts: str = typer.Option("full", "--parts", help="Comma-separated: full (B's performance), jaw (the rigid jaw "
-                              "motion only, in OUT/jaw/), soft_tissue (non-rigid, jaw at rest, in OUT/soft_tissue/)."),
-    mesh_frame: str = typer.Option("camera", "--mesh-frame", help="OBJ/PLY vertices in the camera frame (as the "
-                                   "video saw them) or the head frame (head motion removed)."),
-    source_actor: Optional[str] = typer.Option(None, "--source-actor", help="Actor A, if it moved since the run "
-                                               "(default: the one named in RUN_DIR/run.json)."),
-    threads: int = typer.Option(1, "--threads", help="CPU threads (1 is safest on a shared machine)."),
-    device: str = typer.Option("cpu", "--device", help="Torch device (cpu, cuda)."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace another run in --out."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
-) -> None:
-    """Play a run of actor A on actor B: the same head and jaw motion and expression coefficients."""
-    from rich.console import Console
-
-    cfg = RetargetConfig(run_dir=run_dir, to=to, out=out, source_actor=source_actor, formats=_split(formats),
-                         parts=_split(parts) or (), mesh_frame=mesh_frame, device=device, threads=threads,
-                         overwrite=overwrite, progress=progress)
-    report = retarget_run(cfg)
-    c = Console()
-    a, b = report["actors"]["source"]["name"], report["actors"]["target"]["name"]
-    c.print(f"retargeted {report['frames']['count']} frames of {report['source_run']['take']} from actor '{a}' onto "
-            f"'{b}' in {report['seconds_total']:.1f} s", highlight=False)
-    for part, v in report["parts"].items():
-        c.print(f"  {part}: {v['dir']} ({v['meshes']} meshes, {v['files']} files)", highlight=False)
-    c.print(f"  report: {Path(report['out_dir']) / 'report.json'}", highlight=False)

@@ -68,7 +68,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 log = logging.getLogger(__name__)
 

@@ -51,7 +51,7 @@ import numpy as np
 import trimesh
 from scipy.sparse import coo_matrix, diags
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 __all__ = ["estimate_bone_surface", "typical_tissue_thickness", "TISSUE_PROFILE_MM"]
 

@@ -28,7 +28,7 @@ How :func:`estimate_face_frame` finds them
    1e-5 rad. The candidate with the lowest trimmed RMS mirror distance wins.
 2. **Forward** is the area-weighted mean face normal, made orthogonal to n. This assumes an open face
    mask with outward normals (a registered face scan); a closed head has no mean normal and raises a
-   :class:`~capture.errors.CaptureError` (give the frame explicitly instead).
+   :class:`~capture.io.errors.CaptureError` (give the frame explicitly instead).
 3. **Up** is ``forward x n`` up to its sign. The sign comes from the nose, the one feature every face
    has on the midline: along the mid-sagittal profile (vertices within ``band_mm`` of the plane) the
    nose tip is the most forward point; above it the nasal bridge falls back gently, below it the
@@ -53,7 +53,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 log = logging.getLogger(__name__)
 

@@ -66,7 +66,7 @@ def pose_part(actor: ActorAtPoints, head_R: torch.Tensor, head_t: torch.Tensor, 
 def window_vertices(state: dict, settings: FitSettings, actor: ActorAtPoints, part: str = "full"):
     """Vertices ``(J, V, 3)`` float32 numpy of one solved fit window (a :class:`SequenceFit` state) on ``actor``.
 
-    The same evaluation as the fit's own outputs (``capture.fit_take``), one frame at a time.
+    The same evaluation as the fit's own outputs (``capture.fit.take``), one frame at a time.
     """
     import numpy as np
 

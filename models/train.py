@@ -2,7 +2,7 @@
 
 Pure optimisation, no file I/O: :class:`ActorTrainer` takes tensors (:class:`TrainingData`) and
 settings (:class:`TrainSettings`), exposes ``step()``, ``evaluate()`` and a checkpointable
-``state_dict()``; the command line (``capture.actor_train``) owns progress, files and resume.
+``state_dict()``; the command line (``capture.actor.training``) owns progress, files and resume.
 
 Presets (:data:`PRESETS`):
 

@@ -26,7 +26,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_retarget import _ict_identity_b  # noqa: E402
-from capture.atomic import write_json  # noqa: E402
+from capture.io.atomic import write_json  # noqa: E402
 from capture.cli import main as cli  # noqa: E402
 
 LICENCE = ROOT / "capture" / "data" / "sample_actor" / "LICENSES" / "ICT-FaceKit-MIT.txt"

@@ -12,7 +12,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 from models.anatomy_constraints import (
     AnatomyConstraints,
     compute_anatomy_constraints,

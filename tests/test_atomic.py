@@ -5,7 +5,7 @@ import stat
 
 import pytest
 
-from capture.atomic import atomic_path, write_json
+from capture.io.atomic import atomic_path, write_json
 
 
 def test_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from capture.cli import main
-from capture.errors import CaptureError
-from capture.shoot import load_shoot
+from capture.io.errors import CaptureError
+from capture.batch.shoot import load_shoot
 from tests.tiny_actor import synth_tiny_take, train_tiny_actor
 
 FRAMES = {"a": 20, "b": 10}
@@ -63,12 +63,12 @@ video = "takes/broken/take.mp4"
 @pytest.fixture(scope="module")
 def ray_local():
     """The embedded local Ray, started by the command's own code once for the module (2 CPUs)."""
-    from capture import batch_ray
+    from capture.batch import cluster
 
-    info = batch_ray.connect(None, workers=2, threads=1)
+    info = cluster.connect(None, workers=2, threads=1)
     assert (info.mode, info.cpus, info.nodes) == ("embedded", 2.0, 1)
     yield
-    batch_ray.disconnect(info)
+    cluster.disconnect(info)
 
 
 @pytest.fixture(scope="module")
@@ -156,9 +156,9 @@ def test_rerun_does_no_work(shoot_dir, first_batch, capsys):
 
 def test_a_long_take_split_into_segments_is_stitched_from_them(shoot_dir, first_batch):
     """Take a (20 frames, window 8) in segments of at most 17 frames: 0:14 and 6:20, blended over 6:14."""
-    from capture.batch_segments import _smoothstep
-    from capture.fit_take import FrameFit
-    from capture.run_stages import iter_fits
+    from capture.batch.segments import _smoothstep
+    from capture.fit.take import FrameFit
+    from capture.run.stages import iter_fits
 
     out = shoot_dir / "seg"
     assert main(["batch", str(shoot_dir / "shoot_a.toml"), "--out", str(out), "--segment-frames", "17",
@@ -202,7 +202,7 @@ def test_a_long_take_split_into_segments_is_stitched_from_them(shoot_dir, first_
 def test_a_take_folder_is_claimed_beside_the_batch_files_and_concurrent_writes(tmp_path):
     """Segments of one take claim its folder concurrently: the batch's log and another task's atomic write
     in progress (a hidden temporary sibling) must not make the folder look like someone else's."""
-    from capture.run_store import claim_run_dir
+    from capture.run.store import claim_run_dir
 
     out = tmp_path / "take"
     out.mkdir()
@@ -215,7 +215,7 @@ def test_a_take_folder_is_claimed_beside_the_batch_files_and_concurrent_writes(t
 
 
 def test_segment_plan():
-    from capture.batch_segments import plan_segments
+    from capture.batch.segments import plan_segments
 
     assert plan_segments(0, 100, 40, 10) == [(0, 40), (30, 70), (60, 100)]
     assert plan_segments(5, 30, 40, 10) == [(5, 30)]
@@ -231,7 +231,7 @@ def test_a_changed_setting_or_input_runs_the_take_again(shoot_dir, first_batch, 
     import dataclasses
     import shutil
 
-    from capture.batch_take import done_result, take_key
+    from capture.batch.take import done_result, take_key
 
     cfg = load_shoot(shoot_dir / "shoot_ok.toml", shoot_dir / "out").takes[0].config
     key = take_key(cfg)
@@ -251,7 +251,7 @@ def test_a_changed_setting_or_input_runs_the_take_again(shoot_dir, first_batch, 
 def test_a_dead_worker_is_retried_once(tmp_path, ray_local):
     import ray
 
-    from capture import batch_ray
+    from capture.batch import cluster
 
     @ray.remote(max_retries=0)
     def dies_once(marker: str, name: str, attempt: int, threads: int, counter):
@@ -265,13 +265,13 @@ def test_a_dead_worker_is_retried_once(tmp_path, ray_local):
         return {"take": name, "status": "failed", "error": "boom", "retry": True}
 
     results, frames = {}, {}
-    jobs = [batch_ray.Job("x", (str(tmp_path / "marker"), "x")), batch_ray.Job("y", ("-", "y"))]
-    batch_ray.run_tasks(jobs[:1], 1, 1, lambda j, r: results.setdefault(j.name, r), frames.update, poll=0.1,
+    jobs = [cluster.Job("x", (str(tmp_path / "marker"), "x")), cluster.Job("y", ("-", "y"))]
+    cluster.run_tasks(jobs[:1], 1, 1, lambda j, r: results.setdefault(j.name, r), frames.update, poll=0.1,
                         task=dies_once)
     assert results["x"]["status"] == "done" and results["x"]["attempt"] == 2
     assert frames == {"x": 5}                                 # the frames the task reported reach the driver
     assert jobs[0].attempts[0]["status"] == "failed" and "worker" in jobs[0].attempts[0]["error"]
-    batch_ray.run_tasks(jobs[1:], 1, 1, lambda j, r: results.setdefault(j.name, r), poll=0.1,
+    cluster.run_tasks(jobs[1:], 1, 1, lambda j, r: results.setdefault(j.name, r), poll=0.1,
                         task=ray.remote(max_retries=0)(always_fails))
     assert results["y"]["status"] == "failed" and len(jobs[1].attempts) == 2   # once, then once more
 

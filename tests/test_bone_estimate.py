@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 from models.bone_estimate import TISSUE_PROFILE_MM, estimate_bone_surface, typical_tissue_thickness
 from models.face_frame import estimate_face_frame, midline_landmarks
 from tests.synthetic_face import synthetic_face

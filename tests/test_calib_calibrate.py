@@ -23,7 +23,7 @@ from calib.board import BoardSpec, parse_board
 from calib.calibrate import CalibrationOptions, calibrate_views
 from calib.camera_io import read_camera
 from calib.detect import BoardDetector
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 from tests.calib_synth import (CHARUCO_SPEC, CHECKER_SPEC, IMAGE_SIZE, TRUE_DIST, TRUE_K, Renderer,
                                random_poses, write_images, write_video)
 

@@ -11,7 +11,7 @@ import pytest
 
 from calib.camera import DEFAULT_FOV_DEG, Camera, default_camera
 from calib.camera_io import camera_to_dict, read_camera, write_camera
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 K4K = np.array([[2950.0, 0.0, 1931.7], [0.0, 2948.5, 1075.2], [0.0, 0.0, 1.0]])
 DIST = np.array([-0.11, 0.05, 0.0004, -0.0002, -0.01])

@@ -13,7 +13,7 @@ from capture.detector import (Detector, embedded_points, embedding_from_points, 
 from capture.detector import synthetic as S
 from capture.detector.crop import Crop, input_to_frame
 from capture.detector.embedding import LandmarkEmbedding, embedding_path, parse_embedding
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 
 @pytest.fixture
@@ -92,7 +92,7 @@ def test_parse_accepts_documented_minimal_form():
 
 def test_sample_actor_multipie68_embedding(tmp_path):
     """The bundled sample's 68 landmark vertex ids make a valid embedding on its neutral mesh."""
-    from capture.sample_data import sample_actor_dir
+    from capture.actor.sample import sample_actor_dir
 
     root = sample_actor_dir()
     meta = json.loads((root / "sample.json").read_text())

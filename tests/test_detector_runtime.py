@@ -11,7 +11,7 @@ from capture.detector import Detector, TrackOptions, TrackState
 from capture.detector import synthetic as S
 from capture.detector.crop import Crop, input_to_frame
 from capture.detector.finder import OnnxFaceFinder
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 from tests.test_detector_crop import _blobs
 
 SIZE = (64, 64)

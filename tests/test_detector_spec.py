@@ -12,7 +12,7 @@ from capture.detector import Detector
 from capture.detector import synthetic as S
 from capture.detector.crop import Crop
 from capture.detector.spec import load_face_finder_spec, parse_detector_spec
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 PTS = np.array([[10.0, 20.0], [40.0, 30.0], [32.0, 50.0]])
 

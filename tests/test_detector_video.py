@@ -11,8 +11,8 @@ import pytest
 from capture.detector import Detector, LandmarkTrack, TrackOptions, detect_video
 from capture.detector import synthetic as S
 from capture.detector.finder import HaarFinder
-from capture.errors import CaptureError
-from capture.video import VideoReader, open_video, video_identity
+from capture.io.errors import CaptureError
+from capture.io.video import VideoReader, open_video, video_identity
 
 GRID = Path("/work/shared/assets/videos/grid_corpus")
 CLIPS = sorted(GRID.glob("*.mpg"))

@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from calib.camera import Camera
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 from capture.export import (
     CAMERA_TO_USD,
     EXPORTERS,

@@ -10,7 +10,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 from tests.synthetic_face import synthetic_face
 from models.face_frame import (
     FaceFrame,

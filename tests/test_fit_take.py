@@ -11,10 +11,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-import capture.fit_take as fit_take_mod
+import capture.fit.take as fit_take_mod
 from calib.camera_io import read_camera
-from capture.actor_package import load_actor
-from capture.fit_take import FrameFit, fit_meshes, fit_take, resolved_settings_dict, window_plan
+from capture.actor.package import load_actor
+from capture.fit.take import (FrameFit, TakeLandmarks, WindowedFit, fit_meshes, fit_take, resolved_settings_dict,
+                              window_plan)
 from models.fit import FIT_PRESETS
 from tests.tiny_actor import synth_tiny_take, train_tiny_actor
 
@@ -42,10 +43,11 @@ def take(tmp_path_factory):
                 template_points=template_points, truth=np.load(out / "truth_meshes.npz")["vertices"], root=root)
 
 
-def run(take, points=None, **kw) -> list[FrameFit]:
-    return list(fit_take(take["actor"], take["points"] if points is None else points, take["weights"], take["found"],
-                         take["template_points"], take["camera"], SETTINGS, window=WINDOW, overlap=OVERLAP,
-                         threads=1, **kw))
+def run(take, points=None, cache_dir=None, **kw) -> list[FrameFit]:
+    lm = TakeLandmarks(take["points"] if points is None else points, take["weights"], take["found"],
+                       take["template_points"])
+    return list(fit_take(take["actor"], lm, take["camera"],
+                         WindowedFit(SETTINGS, WINDOW, OVERLAP, cache_dir=cache_dir, threads=1), **kw))
 
 
 @pytest.fixture(scope="module")
@@ -148,8 +150,8 @@ def test_resume_gives_the_same_outputs(take, clean, tmp_path, monkeypatch):
 
 def test_fit_meshes_known_answer(take):
     truth = take["truth"][:20]
-    fits = list(fit_meshes(take["actor"], iter(truth), SETTINGS, window=WINDOW, overlap=OVERLAP, n_samples=300,
-                           threads=1))
+    fits = list(fit_meshes(take["actor"], iter(truth), WindowedFit(SETTINGS, WINDOW, OVERLAP, threads=1),
+                           n_samples=300))
     assert [f.frame for f in fits] == list(range(20))
     err = np.array([f.error3d_mm for f in fits])
     np.testing.assert_allclose(err, vertex_errors(fits, truth).mean(1), rtol=1e-5)
@@ -159,9 +161,11 @@ def test_fit_meshes_known_answer(take):
 
 def test_bad_inputs(take):
     with pytest.raises(ValueError, match="weights"):
-        fit_take(take["actor"], take["points"], take["weights"][:, :10], None, take["template_points"], take["camera"])
+        fit_take(take["actor"], TakeLandmarks(take["points"], take["weights"][:, :10], None, take["template_points"]),
+                 take["camera"])
     with pytest.raises(ValueError, match="unknown fit preset"):
-        fit_take(take["actor"], take["points"], take["weights"], None, take["template_points"], take["camera"], "fast")
+        fit_take(take["actor"], TakeLandmarks(take["points"], take["weights"], None, take["template_points"]),
+                 take["camera"], WindowedFit("fast"))
     d = resolved_settings_dict("paper", 30, 6)
     assert d["preset"] == "paper" and d["fit"]["iterations"] == 10_000 and d["window"] == 30
 
@@ -170,7 +174,7 @@ def test_warm_state_carries_the_base_of_the_overlap_frames():
     """A warm start keeps the solved base (head, jaw, coefficient offsets) of the overlap frames."""
     import torch
 
-    from capture.fit_take import _warm_state
+    from capture.fit.take import _warm_state
 
     J, E, f = 6, 3, 4
     prev = {"codes": torch.arange(J * f, dtype=torch.float32).reshape(J, f),

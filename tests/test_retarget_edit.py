@@ -50,7 +50,7 @@ def _known_params():
 
 
 def _posed(actor_dir: Path, r6, jt, co) -> np.ndarray:
-    from capture.actor_package import load_actor
+    from capture.actor.package import load_actor
 
     act = load_actor(str(actor_dir))
     assert act.shape_names[1:] == ["browUp", "jawOpen", "smile"]
@@ -100,7 +100,7 @@ def test_retarget_plays_known_parameters_on_b(actors, fitted, tmp_path):
     # The replay equals a slow per-frame reference: B's AnatomicalFaceModel.shape with A's coefficient field
     # F_W(z_j, c_A) + coeff0_j at the corresponding vertices, then the head transform (frames 0..3 lie in the first window
     # only, so no overlap blend is involved).
-    from capture.actor_package import load_actor
+    from capture.actor.package import load_actor
     from models.fit import FitSettings, SequenceFit
     from models.rotation import matrix_to_rot6d
 
@@ -222,7 +222,7 @@ def edited(actors):
 
 
 def test_edit_moves_the_region_along_the_bone_normals(actors, edited, capsys):
-    from capture.actor_package import load_actor
+    from capture.actor.package import load_actor
     from models.rotation import rot6d_to_matrix
 
     _, a, _ = actors
@@ -278,7 +278,7 @@ def test_edited_actor_works_in_fit3d_and_retargeting(actors, fitted, edited, tmp
 
 
 def test_region_files_and_bad_input(actors, tmp_path, capsys):
-    from capture.actor_edit import read_region
+    from capture.actor.edit import read_region
     from models.anatomy_edit import region_weight
 
     root, a, _ = actors

@@ -47,7 +47,7 @@ def _known_params(names: list[str]):
 
 def _posed(actor_dir: Path, head, local) -> tuple[np.ndarray, np.ndarray]:
     """The actor posed with the known parameters, camera frame (T, V, 3) mm; and its faces."""
-    from capture.actor_package import load_actor
+    from capture.actor.package import load_actor
 
     act = load_actor(str(actor_dir))
     v = torch.tensor(np.asarray(act.template.vertices), dtype=torch.float32)
@@ -62,7 +62,7 @@ def _meshes(folder: Path) -> np.ndarray:
 
 
 def test_ict_retarget_plays_known_parameters_on_b(tmp_path):
-    from capture.actor_package import read_metadata
+    from capture.actor.package import read_metadata
 
     names = read_metadata(str(A_DIR))["shape_names"][1:]
     assert read_metadata(str(B_DIR))["shape_names"][1:] == names

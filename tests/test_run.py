@@ -21,7 +21,7 @@ import pytest
 import trimesh
 
 from capture.cli import main
-from capture.run_inputs import parse_frame_range, resolve_camera
+from capture.run.inputs import parse_frame_range, resolve_camera
 from tests.tiny_actor import synth_tiny_take, train_tiny_actor
 
 REPO = Path(__file__).resolve().parents[1]
@@ -52,7 +52,7 @@ def run_args(take_dir: Path, actor: Path, out: Path, *extra: str) -> list[str]:
 def full_run(take):
     root, actor, take_dir = take
     out = root / "run_full"
-    import capture.run_stages as stages
+    import capture.run.stages as stages
 
     chunk, stages.FIT_CHUNK = stages.FIT_CHUNK, 8  # several stored chunks (the killed run below has one)
     try:
@@ -108,12 +108,12 @@ def test_outputs_open_in_their_readers(take, full_run):
 
 def test_rerun_does_nothing_and_a_changed_setting_redoes_what_it_affects(take, full_run, monkeypatch, capsys):
     _, actor, take_dir = take
-    import capture.fit_take
+    import capture.fit.take
 
     def no_fit(*a, **k):
         raise AssertionError("fit_take called on a rerun")
 
-    monkeypatch.setattr(capture.fit_take, "fit_take", no_fit)
+    monkeypatch.setattr(capture.fit.take, "fit_take", no_fit)
     before = {p: p.stat().st_mtime_ns for p in (full_run / "meshes").glob("*.obj")}
     assert main(run_args(take_dir, actor, full_run)) == 0
     st = _stages(full_run)

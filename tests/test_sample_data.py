@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from capture import sample_data
-from capture.errors import CaptureError
+from capture.actor import sample as sample_data
+from capture.io.errors import CaptureError
 
 FACE_VERTICES = 9409
 

@@ -15,7 +15,7 @@ import pytest
 from capture.cli import main
 from capture.synth.detector_onnx import square_crop
 from capture.synth.video import read_frames
-from capture.video import VideoReader
+from capture.io.video import VideoReader
 from tests.test_synth_take import train_tiny_actor
 
 

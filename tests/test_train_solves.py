@@ -5,8 +5,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from capture.actor_train import TrainOptions, prepare, resolve_settings
-from capture.meshes import load_shape_dir
+from capture.actor.training import TrainOptions, prepare, resolve_settings
+from capture.io.meshes import load_shape_dir
 from models.rotation import kabsch
 from models.train import ActorTrainer, model_config_for
 from tests.tiny_actor import write_tiny_actor_inputs

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.atomic import write_json
-from capture.errors import CaptureError
+from capture.io.atomic import write_json
+from capture.io.errors import CaptureError
 
 FORMAT = "capture-landmark-embedding"
 VERSION = 1

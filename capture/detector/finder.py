@@ -18,10 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from capture.detector.preprocess import preprocess
 from capture.detector.crop import Crop, crop_from_box, full_frame_crop, input_to_frame, output_to_input_px
 from capture.detector.session import ModelChecker, check_finite, check_image_input, fmt_shape, open_session
 from capture.detector.spec import FaceFinderSpec, load_face_finder_spec
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 HAAR_FILE = "haarcascade_frontalface_default.xml"
 
@@ -99,11 +100,8 @@ class OnnxFaceFinder(FaceFinder):
     name = "onnx"
 
     def __init__(self, onnx_path: str | Path, spec_path: str | Path | None = None, threads: int = 2):
-        from capture.detector.runtime import preprocess
-
         self.onnx_path = Path(onnx_path)
         self.spec: FaceFinderSpec = load_face_finder_spec(spec_path or self.onnx_path.with_suffix(".json"))
-        self._preprocess = preprocess
         self.session = open_session(self.onnx_path, threads)
         chk = ModelChecker(self.spec.label, self.onnx_path.name, self.session)
         port = check_image_input(chk, self.spec.input)
@@ -132,7 +130,7 @@ class OnnxFaceFinder(FaceFinder):
         inp = self.spec.input
         h, w = frame.shape[:2]
         crop = full_frame_crop(w, h, inp.size)
-        x = self._preprocess([frame], [crop], inp)
+        x = preprocess([frame], [crop], inp)
         if self.batch is not None and self.batch > 1:
             x = np.repeat(x, self.batch, axis=0)
         boxes, scores = self.session.run([self.spec.boxes.name, self.spec.scores.name], {inp.name: x})

@@ -7,7 +7,7 @@ Cache layout (``cache_dir`` is usually the run's output directory)::
 
 ``key`` is the first 16 hex digits of the sha256 of: the ONNX file's sha256, the spec's canonical
 JSON, the face finder (its ONNX and spec too, when it is one), the tracking options, the query points
-(query detectors) and the video's identity (:func:`capture.video.video_identity`: size plus the first and
+(query detectors) and the video's identity (:func:`capture.io.video.video_identity`: size plus the first and
 last MiB, so a copied or renamed file still hits the cache and a re-encoded one does not). A segment
 file is written atomically when its segment is done, so an interrupted run keeps every finished
 segment and a resumed run detects only the missing ones. Segments are the independent tracking units
@@ -25,10 +25,10 @@ from typing import Sequence
 
 import numpy as np
 
-from capture.atomic import atomic_path, write_json
+from capture.io.atomic import atomic_path, write_json
 from capture.detector.runtime import Detector, FrameLandmarks, TrackState, Lane
-from capture.errors import CaptureError
-from capture.video import VideoReader, video_identity
+from capture.io.errors import CaptureError
+from capture.io.video import VideoReader, video_identity
 
 CACHE_FORMAT = 1
 MEMORY_BUDGET_BYTES = 1 << 30   # decoded frames held at once (limits how many segments run side by side)

@@ -42,12 +42,13 @@ from typing import Sequence
 import numpy as np
 
 from capture.detector.crop import (Crop, align_angle, crop_from_landmarks, input_to_frame, output_to_input_px,
-                                   smooth_crop, warp_crop)
+                                   smooth_crop)
 from capture.detector.finder import FaceFinder, make_finder
+from capture.detector.preprocess import preprocess
 from capture.detector.session import (ModelChecker, check_finite, check_image_input, fmt_shape,
                                       open_session)
-from capture.detector.spec import DetectorSpec, InputSpec, load_detector_spec
-from capture.errors import CaptureError
+from capture.detector.spec import DetectorSpec, load_detector_spec
+from capture.io.errors import CaptureError
 
 SIGMA_REF_FRACTION = 0.02
 
@@ -95,27 +96,6 @@ class TrackState:
 
     def reset(self) -> None:
         self.crop, self.points, self.mask = None, None, None
-
-
-def preprocess(frames: Sequence[np.ndarray], crops: Sequence[Crop], inp: InputSpec) -> np.ndarray:
-    """Crops of BGR uint8 frames -> the network's input batch (N, ...) per ``inp`` (see the spec doc)."""
-    import cv2
-
-    out = []
-    for frame, crop in zip(frames, crops):
-        img = warp_crop(frame, crop, inp.size)
-        if inp.color == "RGB":
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-        elif inp.color == "GRAY":
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)[:, :, None]
-        out.append(img)
-    x = np.stack(out)  # (N, H, W, C) uint8
-    if inp.dtype == "float32":
-        x = (x.astype(np.float32) * np.float32(inp.scale) - np.asarray(inp.mean, np.float32)) \
-            / np.asarray(inp.std, np.float32)
-    if inp.layout == "NCHW":
-        x = x.transpose(0, 3, 1, 2)
-    return np.ascontiguousarray(x)
 
 
 @dataclass

@@ -15,7 +15,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from capture.detector.spec import InputSpec
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 ORT_TYPES = {"tensor(float)": "float32", "tensor(uint8)": "uint8", "tensor(double)": "float64",
              "tensor(float16)": "float16", "tensor(int64)": "int64", "tensor(int32)": "int32"}

@@ -7,7 +7,7 @@ Two schemas live here (both documented in ``docs/detector_spec.md``):
   by ``crop.first_frame`` to find the face in the first frame and after it is lost.
 
 Parsing is strict: unknown keys, wrong types and values outside the allowed set raise a one-line
-:class:`~capture.errors.CaptureError` naming the file, the field, what was expected and what was
+:class:`~capture.io.errors.CaptureError` naming the file, the field, what was expected and what was
 found. Checking a spec against the model's declared inputs and outputs is in :mod:`.model_check`.
 """
 
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 DETECTOR_FORMAT = "capture-detector"
 FACE_FINDER_FORMAT = "capture-face-detector"

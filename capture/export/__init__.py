@@ -29,7 +29,7 @@ renames into place) and ``abort()`` (removes its temporary files, leaves finishe
 Resume: per-frame mesh files that already exist are kept unless ``ExportOptions.overwrite``, so a
 rerun only writes missing frames; the USD, NPZ and overlay files are rewritten whole by every run
 (cheap next to the fit). Nothing is ever half-written: every file goes through
-:mod:`capture.atomic` (see :mod:`capture.export.base`).
+:mod:`capture.io.atomic` (see :mod:`capture.export.base`).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 from capture.export.base import (
     MESH_FRAMES,
     STATUSES,

@@ -2,7 +2,7 @@
 
 Exporters are duck-typed against two tiny protocols so that they do not import the fitter:
 
-* :class:`FrameFitLike` -- one fitted frame (``capture.fit_take.FrameFit``).
+* :class:`FrameFitLike` -- one fitted frame (``capture.fit.take.FrameFit``).
 * :class:`DetectionLike` -- the detected landmarks of that frame
   (``capture.detector.runtime.FrameLandmarks``), passed beside it.
 
@@ -11,8 +11,8 @@ OpenCV's (x right, y down, z forward); ``x_cam = head_R @ x_head + head_t``; pix
 integer coordinates. The single conversion to a foreign convention (USD's y-up camera) lives in
 :mod:`capture.export.usd`.
 
-Every file goes to disk through :mod:`capture.atomic`: per-frame files with
-:func:`capture.atomic.write_bytes`, take-long files (USD, MP4, NPZ) through a
+Every file goes to disk through :mod:`capture.io.atomic`: per-frame files with
+:func:`capture.io.atomic.write_bytes`, take-long files (USD, MP4, NPZ) through a
 :class:`PendingFile` -- a temporary sibling held open for the whole take and renamed over the
 target by ``close()`` (``abort()`` deletes it and leaves earlier outputs alone).
 """
@@ -27,7 +27,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from capture.atomic import atomic_path
+from capture.io.atomic import atomic_path
 
 #: Per-frame fit status, stored in NPZ files as int8 codes (index into this tuple).
 STATUSES = ("fitted", "bridged", "skipped")
@@ -184,7 +184,7 @@ class ExportAborted(Exception):
 class PendingFile:
     """A take-long output: a temporary sibling of ``target`` that ``commit()`` renames over it.
 
-    Wraps :func:`capture.atomic.atomic_path` across calls (it is entered at construction and left
+    Wraps :func:`capture.io.atomic.atomic_path` across calls (it is entered at construction and left
     by :meth:`commit`, which fsyncs and renames, or :meth:`discard`, which deletes the temp file).
     """
 

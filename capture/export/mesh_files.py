@@ -5,7 +5,7 @@ Each file has the actor's full template topology (every vertex, in template orde
 z forward) or, with ``ExportOptions.mesh_frame = "head"``, in the actor's template frame.
 
 The codecs (:func:`encode_obj`, :func:`encode_ply`) turn vertices into bytes; the face block is the
-same for every frame, so it is encoded once per take. :func:`capture.atomic.write_bytes` is the one
+same for every frame, so it is encoded once per take. :func:`capture.io.atomic.write_bytes` is the one
 thing that touches the disk. Resume: a frame whose file already exists is skipped unless
 ``overwrite`` (a rerun of an export only writes the missing frames). Frames without a mesh
 (``skipped``: no face found) get no file.
@@ -15,7 +15,7 @@ thing that touches the disk. Resume: a frame whose file already exists is skippe
 
 Every template vertex is written, also ones no triangle uses. Readers keep them; trimesh's OBJ
 reader keeps them only with ``trimesh.load(path, process=False, maintain_order=True)`` (as
-:func:`capture.meshes.load_mesh` does) and otherwise drops them.
+:func:`capture.io.meshes.load_mesh` does) and otherwise drops them.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.atomic import write_bytes
+from capture.io.atomic import write_bytes
 from capture.export.base import ExportContext, FrameFitLike, check_vertices, to_head_frame
 
 MESH_DIR = "meshes"

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 from capture.export.base import ExportContext, FrameFitLike, PendingFile, check_vertices
 
 OVERLAY_FILE = "overlay.mp4"

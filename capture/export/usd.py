@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 from capture.export.base import ExportContext, FrameFitLike, PendingFile, check_vertices
 
 #: OpenCV camera frame (x right, y down, z forward) -> USD (y up, camera looking down -z).

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 __all__ = ["read_mesh_sequence"]
 
@@ -25,7 +25,7 @@ def read_mesh_sequence(path: str | Path, n_vertices: int, units: str = "mm") -> 
     Raises CaptureError when the path is missing, holds no frames, has the wrong vertex count,
     a non-finite coordinate or an array of the wrong shape.
     """
-    from capture.meshes import MESH_SUFFIXES, load_mesh, units_scale
+    from capture.io.meshes import MESH_SUFFIXES, load_mesh, units_scale
 
     path = Path(path)
     scale = units_scale(units)

@@ -39,9 +39,9 @@ from scipy.spatial.transform import Rotation
 
 from calib.camera import Camera, default_camera
 from calib.camera_io import read_camera, write_camera
-from capture.actor_package import load_actor
-from capture.atomic import atomic_path, write_bytes, write_json
-from capture.errors import CaptureError
+from capture.actor.package import load_actor
+from capture.io.atomic import atomic_path, write_bytes, write_json
+from capture.io.errors import CaptureError
 from capture.synth import scene
 from capture.synth.detector_onnx import (LandmarkSet, build_detector, embedding_dict, export_onnx, landmark_colours,
                                          sample_landmarks, spec_dict)
@@ -86,6 +86,17 @@ class SynthConfig:
     overwrite: bool = False
     meshes: Path | None = None                   # a mesh sequence to render (capture.synth.mesh_sequence)
     units: str = "mm"                            # units of --meshes
+
+
+def parse_size(text: str | None) -> tuple[int, int] | None:
+    """``"1280x720"`` -> ``(1280, 720)``; None stays None."""
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise CaptureError(f"--size must look like 1280x720, got '{text}'") from None
+    return w, h
 
 
 @dataclass

@@ -21,7 +21,7 @@ from typing import Iterator
 
 import numpy as np
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 CODECS = ("h264-lossless", "h264")
 DEFAULT_CRF = 8

@@ -16,9 +16,9 @@ A last task per take (:func:`merge_segments`) stitches the segments into the tak
 neither ``capture run`` nor an unsplit batch takes it for an unsplit fit): frames of one
 segment are taken as they are; in an overlap every per-frame output is the smoothstep blend from
 the earlier to the later segment (rotations re-orthonormalised, as at the window seams of
-:mod:`capture.fit_take`; frame codes, which live in each segment's own latent space, are the nearer
+:mod:`capture.fit.take`; frame codes, which live in each segment's own latent space, are the nearer
 segment's), and the reprojection error of a blended frame is measured again. Then
-:func:`capture.run.run_take` finds detection and fit done and exports and reports as usual: the
+:func:`capture.run.take.run_take` finds detection and fit done and exports and reports as usual: the
 run folder has the same layout as ``capture run``'s, and ``report.json`` lists the segments.
 
 The cost is ``O / (S - O)`` more frames fitted and a cold start per segment; the gain is that one
@@ -34,8 +34,8 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from capture.errors import CaptureError
-from capture.run_inputs import RunConfig
+from capture.io.errors import CaptureError
+from capture.run.inputs import RunConfig
 
 
 def plan_segments(start: int, end: int, size: int, overlap: int) -> list[tuple[int, int]]:
@@ -65,8 +65,8 @@ BLENDED = ("head_R", "head_t", "jaw_R", "jaw_t", "coefficients_landmarks", "vert
 
 def blend_frame(a: Any, b: Any, alpha: float) -> Any:
     """``(1 - alpha) * a + alpha * b`` of two fits of one frame (:data:`BLENDED` fields; rotations
-    re-orthonormalised by :func:`capture.fit_take._blend`); other fields from ``b`` when ``alpha >= 0.5``."""
-    from capture.fit_take import _blend
+    re-orthonormalised by :func:`capture.fit.take._blend`); other fields from ``b`` when ``alpha >= 0.5``."""
+    from capture.fit.take import _blend
 
     mixed = _blend({k: np.asarray(getattr(a, k)) for k in BLENDED}, {k: np.asarray(getattr(b, k)) for k in BLENDED},
                    0, alpha)
@@ -114,7 +114,7 @@ def stitch(segments: Sequence[tuple[int, int]], fits: Sequence[Iterator[Any]]) -
 
 # ------------------------------------------------------------------------------------------ tasks
 def _segment_dir(out: Path, key: dict) -> Path:
-    from capture.run_store import digest
+    from capture.run.store import digest
 
     return Path(out) / "fit" / "segments" / digest(key)[:16]
 
@@ -129,14 +129,14 @@ def _segment_track(inputs, start: int, end: int):
 
 
 def _segment_key(inputs, track, start: int, end: int) -> dict:
-    from capture.run_stages import fit_key
+    from capture.run.stages import fit_key
 
     return {**fit_key(inputs, track), "segment": [int(start), int(end)]}
 
 
 def _claim(inputs) -> None:
     """Claim the take's folder like ``capture run`` (a placeholder ``run.json`` until the merge writes it)."""
-    from capture.run_store import RUN_JSON, claim_run_dir, write_run_json
+    from capture.run.store import RUN_JSON, claim_run_dir, write_run_json
 
     label = f"{Path(inputs.config.video).name} (id {inputs.video_id[:12]})"
     claim_run_dir(inputs.out, inputs.video_id, label, inputs.config.overwrite)
@@ -146,9 +146,9 @@ def _claim(inputs) -> None:
 
 def fit_segment(cfg: RunConfig, start: int, end: int) -> dict:
     """Detect and fit frames ``[start, end)`` of a take into ``OUT/fit/segments/<key>/`` (skipped when done)."""
-    from capture.fit_take import fit_take
-    from capture.run_inputs import resolve_inputs
-    from capture.run_stages import landmark_weights, run_fit_cached
+    from capture.fit.take import fit_take
+    from capture.run.inputs import resolve_inputs
+    from capture.run.stages import run_fit_cached, take_landmarks, windowed_fit
 
     inputs = resolve_inputs(cfg)
     _claim(inputs)
@@ -159,9 +159,8 @@ def fit_segment(cfg: RunConfig, start: int, end: int) -> dict:
     key = _segment_key(inputs, track, start, end)
 
     def run(cache: Path):
-        return fit_take(inputs.actor, track.points, landmark_weights(track), track.face_found,
-                        inputs.landmark_points, inputs.camera.camera, inputs.fit_settings, window=cfg.window,
-                        overlap=cfg.overlap, cache_dir=cache, progress=None, device=cfg.device, threads=cfg.threads)
+        return fit_take(inputs.actor, take_landmarks(inputs, track), inputs.camera.camera,
+                        windowed_fit(inputs, cache))
 
     fdir = run_fit_cached(_segment_dir(inputs.out, key), key, len(track), run, "fit", False, None,
                           frame_map=track.frame_index)
@@ -171,10 +170,10 @@ def fit_segment(cfg: RunConfig, start: int, end: int) -> dict:
 def merge_segments(cfg: RunConfig, segments: Sequence[tuple[int, int]]) -> dict:
     """Stitch the fitted segments into the take's fit, then export and report with ``run_take``."""
     from capture.detector import LandmarkTrack
-    from capture.run import run_take
-    from capture.run_inputs import resolve_inputs
-    from capture.run_report import write_report
-    from capture.run_stages import (LANDMARKS, detect_stage, fit_dir_for, fit_is_done, fit_key, iter_fits,
+    from capture.run.take import run_take
+    from capture.run.inputs import resolve_inputs
+    from capture.run.report import write_report
+    from capture.run.stages import (LANDMARKS, detect_stage, fit_dir_for, fit_is_done, fit_key, iter_fits,
                                     landmark_weights, run_fit_cached)
 
     cfg = replace(cfg, segments=tuple((int(s), int(e)) for s, e in segments))   # in the fit's key

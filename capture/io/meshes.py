@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 MESH_SUFFIXES = (".obj", ".ply")
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}

@@ -17,7 +17,7 @@ import math
 from pathlib import Path
 from typing import Sequence
 
-from capture.atomic import write_json, write_text
+from capture.io.atomic import write_json, write_text
 
 REPORT_JSON = "batch_report.json"
 SUMMARY_CSV = "batch_summary.csv"

@@ -3,7 +3,7 @@
 Streaming and resumable. The take is solved in overlapping windows of frames with the paper's
 neurally reparameterised sequence fit (:mod:`models.fit`):
 
-* **Initialisation** (:mod:`capture.fit_init`): a rigid head pose per frame from a PnP of the
+* **Initialisation** (:mod:`capture.fit.init`): a rigid head pose per frame from a PnP of the
   actor's neutral at the landmarks' template points against the detections (confidence-selected,
   RANSAC then LM), interpolated over frames without a face and smoothed over time. ``F_T`` learns a
   correction on top of it.
@@ -47,8 +47,8 @@ import torch
 
 from calib.camera import Camera
 from calib.projection import camera_tensors, project_points
-from capture.atomic import atomic_path
-from capture.fit_init import PnPSettings, initial_head_poses, rigid_align
+from capture.io.atomic import atomic_path
+from capture.fit.init import PnPSettings, initial_head_poses, rigid_align
 from models.fit import (FIT_PRESETS, ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence,
                         pose_face)
 
@@ -56,6 +56,40 @@ __all__ = ["FrameFit", "fit_take", "fit_meshes", "resolve_settings", "resolved_s
            "farthest_point_sample"]
 
 CACHE_VERSION = 3  # 2: SequenceFit has a jaw and coefficient base; 3: and a coefficient field
+
+
+@dataclass(frozen=True)
+class TakeLandmarks:
+    """A take's 2D landmarks as the fit reads them.
+
+    ``points`` ``(T, L, 2)`` full-frame px (OpenCV pixel centres), NaN where missing; ``weights``
+    ``(T, L)`` confidence in [0, 1] (None: 1 where finite); ``face_found`` ``(T,)`` bool (None: every
+    frame; frames without a face get weight 0 and are bridged); ``template_points`` ``(L, 3)`` mm, the
+    landmarks on the actor's template (the embedding).
+    """
+
+    points: np.ndarray
+    weights: np.ndarray | None
+    face_found: np.ndarray | None
+    template_points: np.ndarray
+
+
+@dataclass(frozen=True)
+class WindowedFit:
+    """How a take is cut and solved: settings, windows, cache, device.
+
+    ``settings`` is a :class:`FitSettings` or a preset name of :data:`models.fit.FIT_PRESETS`;
+    ``window`` frames per window, ``overlap`` of them shared by consecutive windows; ``cache_dir`` keeps
+    solved windows for resume (None: nothing written); ``threads`` torch threads while solving (None:
+    leave torch's setting).
+    """
+
+    settings: FitSettings | str | None = "default"
+    window: int = 30
+    overlap: int = 6
+    cache_dir: str | Path | None = None
+    device: str = "cpu"
+    threads: int | None = None
 
 
 @dataclass
@@ -429,35 +463,29 @@ def _query(actor, points: np.ndarray, device) -> ActorAtPoints:
 # public entry points
 
 
-def fit_take(actor, points2d: np.ndarray, weights: np.ndarray | None, face_found: np.ndarray | None,
-             landmark_template_points: np.ndarray, camera: Camera, settings: FitSettings | str | None = "default",
-             window: int = 30, overlap: int = 6, cache_dir: str | Path | None = None,
-             progress: Callable[[int, int | None], None] | None = None, device: str = "cpu",
-             threads: int | None = None, pnp: PnPSettings | None = None,
+def fit_take(actor, landmarks: TakeLandmarks, camera: Camera, how: WindowedFit = WindowedFit(),
+             pnp: PnPSettings | None = None, progress: Callable[[int, int | None], None] | None = None,
              timings: dict | None = None) -> Iterator[FrameFit]:
     """Fit ``actor`` to a take's 2D landmarks; yields one :class:`FrameFit` per frame, in frame order.
 
     Args:
-        actor: a loaded actor (:func:`capture.actor_package.load_actor`): ``.model`` and ``.template``.
-        points2d: ``(T, L, 2)`` full-frame px (OpenCV pixel centres), NaN where missing.
-        weights: ``(T, L)`` landmark confidence in [0, 1] (None: 1 where finite).
-        face_found: ``(T,)`` bool (None: every frame); frames without a face get weight 0 (bridged).
-        landmark_template_points: ``(L, 3)`` mm, the landmarks on the template (the embedding).
+        actor: a loaded actor (:func:`capture.actor.package.load_actor`): ``.model`` and ``.template``.
+        landmarks: the take's landmarks, confidences and their template points (:class:`TakeLandmarks`).
         camera: the calibrated camera (K, dist).
-        settings: :class:`FitSettings` or a preset name of :data:`models.fit.FIT_PRESETS`.
-        window, overlap: frames per window and shared by consecutive windows.
-        cache_dir: where solved windows are kept for resume (None: nothing written).
-        progress: ``progress(frames_done, total_frames)`` after each yielded frame.
-        threads: torch threads while solving (None: leave torch's setting).
+        how: settings, windows, cache, device and threads (:class:`WindowedFit`).
         pnp: how the initial head poses are found.
+        progress: ``progress(frames_done, total_frames)`` after each yielded frame.
         timings: a dict that receives seconds per stage (``query_s``, ``pnp_s``, ``solve_s``,
             ``outputs_s``) and counts (``iterations``, ``windows_solved``, ``windows_cached``).
 
     Raises ValueError on mismatched shapes, bad window settings or when no frame has a usable face.
     """
-    s = resolve_settings(settings)
+    s = resolve_settings(how.settings)
+    window, overlap, device = how.window, how.overlap, how.device
     _check_window(window, overlap)
     pnp = pnp or PnPSettings()
+    points2d, weights, face_found = landmarks.points, landmarks.weights, landmarks.face_found
+    landmark_template_points = landmarks.template_points
     points2d = np.asarray(points2d, np.float64)
     if points2d.ndim != 3 or points2d.shape[2] != 2:
         raise ValueError(f"points2d should be (T, L, 2); got {points2d.shape}")
@@ -488,13 +516,13 @@ def fit_take(actor, points2d: np.ndarray, weights: np.ndarray | None, face_found
     base = _fingerprint(CACHE_VERSION, "2d", resolved_settings_dict(s, window, overlap, pnp), fit_actor.neutral,
                         fit_actor.expressions, out_actor.neutral, camera.K, camera.dist)
     return _run_windows(src, fit_actor, out_actor, s, window, overlap,
-                        None if cache_dir is None else Path(cache_dir), progress, threads, base, T, K, dist, tm)
+                        None if how.cache_dir is None else Path(how.cache_dir), progress, how.threads, base, T, K,
+                        dist, tm)
 
 
-def fit_meshes(actor, meshes: np.ndarray | Iterable[np.ndarray], settings: FitSettings | str | None = "default",
-               window: int = 30, overlap: int = 6, n_samples: int = 1000, cache_dir: str | Path | None = None,
-               progress: Callable[[int, int | None], None] | None = None, device: str = "cpu",
-               threads: int | None = None, timings: dict | None = None) -> Iterator[FrameFit]:
+def fit_meshes(actor, meshes: np.ndarray | Iterable[np.ndarray], how: WindowedFit = WindowedFit(),
+               n_samples: int = 1000, progress: Callable[[int, int | None], None] | None = None,
+               timings: dict | None = None) -> Iterator[FrameFit]:
     """Fit ``actor`` to a registered mesh sequence (``capture fit3d``); yields :class:`FrameFit` per frame.
 
     ``meshes`` is ``(T, V, 3)`` or an iterator of ``(V, 3)`` arrays in the template's vertex order
@@ -503,7 +531,8 @@ def fit_meshes(actor, meshes: np.ndarray | Iterable[np.ndarray], settings: FitSe
     distance to the given mesh. The initial head pose per frame is the rigid (Kabsch) alignment of
     the actor's neutral at the samples.
     """
-    s = resolve_settings(settings)
+    s = resolve_settings(how.settings)
+    window, overlap, device = how.window, how.overlap, how.device
     _check_window(window, overlap)
     tv = np.asarray(actor.template.vertices, np.float64)
     idx = farthest_point_sample(tv, n_samples)
@@ -514,5 +543,5 @@ def fit_meshes(actor, meshes: np.ndarray | Iterable[np.ndarray], settings: FitSe
     base = _fingerprint(CACHE_VERSION, "3d", resolved_settings_dict(s, window, overlap), n_samples,
                         fit_actor.neutral, out_actor.neutral)
     return _run_windows(src, fit_actor, out_actor, s, window, overlap,
-                        None if cache_dir is None else Path(cache_dir), progress, threads, base, total, None, None,
-                        timings)
+                        None if how.cache_dir is None else Path(how.cache_dir), progress, how.threads, base, total,
+                        None, None, timings)

@@ -1,8 +1,8 @@
 """``capture run VIDEO --actor A``: video in, animated meshes out (detect -> fit -> export, resumable).
 
-:func:`run_take` checks every input first (:mod:`capture.run_inputs`; nothing is written on bad input),
+:func:`run_take` checks every input first (:mod:`capture.run.inputs`; nothing is written on bad input),
 claims the output folder (``run.json``; a folder holding another take is refused without
-``--overwrite``), then runs the stages of :mod:`capture.run_stages`, each of which skips what is
+``--overwrite``), then runs the stages of :mod:`capture.run.stages`, each of which skips what is
 already done, and writes ``report.json``. SIGTERM and Ctrl-C keep every finished segment, window and
 frame file and exit with status 130; the same command resumes.
 
@@ -21,17 +21,16 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
-import typer
 
-from capture.errors import CaptureError, Interrupted
-from capture.run_inputs import RunConfig, parse_formats, resolve_inputs
-from capture.run_report import error_stats, frame_table, print_summary, versions, write_report
-from capture.run_stages import LANDMARKS, detect_stage, export_stage, fit_frames, fit_stage, iter_fits
-from capture.run_store import claim_run_dir, digest, write_run_json
-from capture.signals import sigterm_as_interrupt
+from capture.io.errors import CaptureError, Interrupted
+from capture.run.inputs import RunConfig, resolve_inputs
+from capture.run.report import error_stats, frame_table, versions, write_report
+from capture.run.stages import LANDMARKS, detect_stage, export_stage, fit_frames, fit_stage, iter_fits
+from capture.run.store import claim_run_dir, digest, write_run_json
+from capture.io.signals import sigterm_as_interrupt
 
 
 @dataclass
@@ -118,7 +117,7 @@ def run_take(cfg: RunConfig) -> dict:
     from capture.detector import LandmarkTrack
     from capture.export import ExportContext, ExportOptions
     from calib.camera_io import camera_to_dict
-    from capture.video import VideoReader
+    from capture.io.video import VideoReader
 
     t_start = time.perf_counter()
     inputs = resolve_inputs(cfg)
@@ -191,7 +190,7 @@ def run_take(cfg: RunConfig) -> dict:
 
 
 def fits_key(out: Path, inputs, track) -> str:
-    from capture.run_stages import fit_key
+    from capture.run.stages import fit_key
 
     return digest(fit_key(inputs, track))
 
@@ -216,38 +215,3 @@ def finish_report(report: dict, rows: list[dict], error_key: str, out: Path) -> 
         ["report.json"]
     report["output_files"] = files
     write_report(out, report)
-
-
-# ----------------------------------------------------------------------------------------- command
-def run_command(
-    video: Path = typer.Argument(..., help="The video of the take (any format OpenCV/FFmpeg reads)."),
-    actor: str = typer.Option(..., "--actor", help="Actor name or folder (see 'capture actor list')."),
-    camera: Optional[Path] = typer.Option(None, "--camera", help="Camera file (capture calibrate JSON or OpenCV "
-                                          "YAML); default: a documented 60 deg guess, flagged in the report."),
-    detector: Optional[Path] = typer.Option(None, "--detector", help="Landmark detector FILE.onnx with FILE.json "
-                                            "beside it; default: the one in VIDEO's folder/detector/."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default ./runs/<video stem>)."),
-    frames: Optional[str] = typer.Option(None, "--frames", help="START:END, END exclusive (default all)."),
-    formats: Optional[str] = typer.Option(None, "--formats", help="Exports: comma-separated obj, ply, usd, npz, "
-                                          "overlay (default obj,usd,npz,overlay)."),
-    preset: str = typer.Option("default", "--preset", help="Fit preset: default or paper."),
-    seed: int = typer.Option(0, "--seed", help="Random seed of the fit."),
-    iterations: Optional[int] = typer.Option(None, "--iterations", help="Fit iterations of the first window "
-                                             "(default: the preset's; later windows use at most as many)."),
-    threads: int = typer.Option(1, "--threads", help="CPU threads of the detector and the fit (1 is safest on a "
-                                 "shared machine: busy threads spinning against other jobs were 10x slower)."),
-    device: str = typer.Option("cpu", "--device", help="Torch device of the fit (cpu, cuda)."),
-    window: int = typer.Option(30, "--window", help="Frames per fitting window."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the run in --out (another take's, "
-                                   "or redo this one from scratch)."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
-) -> None:
-    """Capture a take: detect landmarks, fit the actor, export meshes, USD, parameters and an overlay.
-
-    Each stage skips work already done: rerunning is cheap and an interrupted run resumes."""
-    cfg = RunConfig(video=video, actor=actor, camera=camera, detector=detector, out=out, frames=frames,
-                    formats=parse_formats(formats), preset=preset, seed=seed, iterations=iterations, threads=threads,
-                    device=device, window=window,
-                    overlap=min(6, max(0, window // 5)), overwrite=overwrite, progress=progress)
-    report = run_take(cfg)
-    print_summary(report)

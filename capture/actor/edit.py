@@ -33,7 +33,7 @@ import numpy as np
 import torch
 import trimesh
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 DEFAULT_FALLOFF_MM = 10.0
 
@@ -58,7 +58,7 @@ class EditOptions:
 
 def read_region(path: Path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """A region file (see the module docstring) -> (vertex indices (M,), mask values (M,) in (0, 1])."""
-    from capture.actor_train import read_vertex_list
+    from capture.actor.training import read_vertex_list
 
     path = Path(path)
     if not path.is_file():
@@ -117,9 +117,9 @@ def _displacement_figures(before, after, region_w: np.ndarray) -> dict:
 
 def edit_actor(opts: EditOptions, report=print) -> Path:
     """Write the edited actor ``opts.out``; returns its folder. Nothing is written on bad input."""
-    from capture.actor_package import (ACTOR_JSON, BONES_DIR, CONSTRAINTS, WEIGHTS, actor_dir, is_actor, load_actor,
+    from capture.actor.package import (ACTOR_JSON, BONES_DIR, CONSTRAINTS, WEIGHTS, actor_dir, is_actor, load_actor,
                                        remove_actor, save_actor)
-    from capture.run_store import file_sha256
+    from capture.run.store import file_sha256
     from models.anatomy_edit import ThicknessEdit
 
     t0 = time.perf_counter()

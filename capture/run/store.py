@@ -18,8 +18,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from capture.atomic import atomic_path, write_json
-from capture.errors import CaptureError
+from capture.io.atomic import atomic_path, write_json
+from capture.io.errors import CaptureError
 
 RUN_JSON = "run.json"
 RUN_FORMAT = "capture-run"

@@ -1,7 +1,7 @@
 """One take of a ``capture batch``: its settings key, whether it is already done, and running it.
 
 This module knows nothing of Ray: :func:`process_take` is what a Ray task calls on a worker (and what
-a test can call directly). It runs :func:`capture.run.run_take` (the stages, caches and report of
+a test can call directly). It runs :func:`capture.run.take.run_take` (the stages, caches and report of
 ``capture run``) with torch pinned to the task's threads, appends what happened to the take's log
 ``OUT/batch_take.log`` and returns a plain-data result; it never raises for a bad take.
 
@@ -24,10 +24,10 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable
 
-from capture.atomic import write_json
-from capture.errors import CaptureError, Interrupted
-from capture.run_inputs import RunConfig
-from capture.run_store import RUN_JSON, digest, file_sha256, read_json
+from capture.io.atomic import write_json
+from capture.io.errors import CaptureError, Interrupted
+from capture.run.inputs import RunConfig
+from capture.run.store import RUN_JSON, digest, file_sha256, read_json
 
 TAKE_JSON = "batch_take.json"
 TAKE_LOG = "batch_take.log"
@@ -49,9 +49,9 @@ def take_key(cfg: RunConfig, segments: list | None = None) -> str:
     """sha256 over the take's output-relevant settings, its segments (when split) and its input
     fingerprints (cheap: the video's identity reads 2 MiB; the other inputs are small files or the
     actor's weights)."""
-    from capture.actor_package import WEIGHTS, actor_dir
-    from capture.run_inputs import default_detector
-    from capture.video import video_identity
+    from capture.actor.package import WEIGHTS, actor_dir
+    from capture.run.inputs import default_detector
+    from capture.io.video import video_identity
 
     settings = {k: v for k, v in cfg.to_dict().items() if k not in _NOT_KEYED}
     try:
@@ -135,7 +135,7 @@ def process_take(cfg: RunConfig, name: str, attempt: int, threads: int,
     See :func:`guarded` for threads, logging and failures; the result carries the summary fields of
     the take's report (:func:`result_from_report`).
     """
-    from capture.run import run_take
+    from capture.run.take import run_take
 
     return guarded(cfg, name, attempt, threads, lambda c: result_from_report(run_take(c)), on_frames)
 
@@ -153,7 +153,7 @@ def guarded(cfg: RunConfig, name: str, attempt: int, threads: int, work: Callabl
 
     import torch
 
-    from capture.run_progress import progress_listener
+    from capture.run.progress import progress_listener
 
     cfg = dataclasses.replace(cfg, threads=int(threads), progress=False)
     out = Path(cfg.out)

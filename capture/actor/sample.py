@@ -11,7 +11,7 @@ import json
 from importlib import resources
 from pathlib import Path
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 _REGENERATE = "regenerate it with: python scripts/make_sample_actor.py"
 
@@ -21,7 +21,7 @@ def sample_actor_dir() -> Path:
     try:
         root = Path(str(resources.files("capture"))) / "data" / "sample_actor"
     except (ModuleNotFoundError, TypeError):  # pragma: no cover - unusual loaders
-        root = Path(__file__).resolve().parent / "data" / "sample_actor"
+        root = Path(__file__).resolve().parents[1] / "data" / "sample_actor"
     if not (root / "sample.json").is_file():
         raise CaptureError(f"bundled sample actor not found at {root}; {_REGENERATE}")
     return root

@@ -10,8 +10,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from capture.actor_package import actor_dir, list_actors, read_metadata
-from capture.errors import CaptureError
+from capture.actor.package import actor_dir, list_actors, read_metadata
+from capture.io.errors import CaptureError
 
 actor_app = typer.Typer(help="Learn actors from registered blendshape meshes and inspect them.",
                         no_args_is_help=True)
@@ -55,10 +55,10 @@ def train_command(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:
     """Learn actor A from registered blendshape meshes (neutral + expressions); resumes if interrupted."""
-    from capture.actor_train import TrainOptions, TrainingProgress, train_actor
+    from capture.actor.training import TrainOptions, TrainingProgress, train_actor
 
     if sample:
-        from capture.sample_data import sample_bones, sample_shapes_dir
+        from capture.actor.sample import sample_bones, sample_shapes_dir
 
         if shapes is not None or skull is not None or jaw is not None:
             raise CaptureError("--sample brings its own shapes and bones: drop --shapes, --skull and --jaw")
@@ -90,7 +90,7 @@ def edit_command(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing actor --out."),
 ) -> None:
     """Scale the learned soft-tissue thickness in a painted region: a new actor whose neutral and expressions follow."""
-    from capture.actor_edit import EditOptions, edit_actor
+    from capture.actor.edit import EditOptions, edit_actor
 
     console = Console(stderr=True)
     path = edit_actor(EditOptions(actor=actor, out=out, thickness_scale=thickness_scale, region=region,
@@ -136,7 +136,7 @@ def _show(actor, console: Console) -> None:
     q, tr, con = meta["quality"], meta["training"], meta["anatomy_constraints"]
     console.print(f"[bold]{meta['name']}[/]  {meta['n_vertices']} vertices, {len(meta['shape_names'])} shapes "
                   f"(neutral '{meta['neutral']}'), units {meta['units']}, {actor_dir(str(actor))}")
-    from capture.actor_edit import edit_summary
+    from capture.actor.edit import edit_summary
 
     if edit_summary(meta):
         console.print(edit_summary(meta), highlight=False)

@@ -20,9 +20,9 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from capture.atomic import write_json
-from capture.run_progress import StageProgress
-from capture.run_store import array_digest, digest, load_frame_fits, read_json, save_frame_fits
+from capture.io.atomic import write_json
+from capture.run.progress import StageProgress
+from capture.run.store import array_digest, digest, load_frame_fits, read_json, save_frame_fits
 
 LANDMARKS = "detections/track.npz"
 EXPORT_JSON = "export.json"
@@ -91,7 +91,7 @@ def fit_dir_for(out_dir: Path, key: dict) -> Path:
 
 
 def _frame_fit_class():
-    from capture.fit_take import FrameFit
+    from capture.fit.take import FrameFit
 
     return FrameFit
 
@@ -163,20 +163,32 @@ def run_fit_cached(fit_dir: Path, key: dict, total: int, start_fit: Callable[[Pa
     return fit_dir
 
 
+def take_landmarks(inputs, track):
+    """The fit's view of a detected track (:class:`capture.fit.take.TakeLandmarks`)."""
+    from capture.fit.take import TakeLandmarks
+
+    return TakeLandmarks(track.points, landmark_weights(track), track.face_found, inputs.landmark_points)
+
+
+def windowed_fit(inputs, cache: Path | None):
+    """The run's fit settings, windows, device and threads (:class:`capture.fit.take.WindowedFit`)."""
+    from capture.fit.take import WindowedFit
+
+    cfg = inputs.config
+    return WindowedFit(inputs.fit_settings, cfg.window, cfg.overlap, cache, cfg.device, cfg.threads)
+
+
 def fit_stage(inputs, track, out_dir: Path, overwrite: bool = False, log: list | None = None,
               progress: bool = True) -> Path:
     """Fit the actor to the landmarks (``fit_take``) -> ``OUT/fit/<key>/`` (see :func:`run_fit_cached`)."""
     key = fit_key(inputs, track)
     fdir = fit_dir_for(out_dir, key)
-    cfg = inputs.config
 
     def start(cache: Path):
-        from capture.fit_take import fit_take
+        from capture.fit.take import fit_take
 
-        return fit_take(inputs.actor, track.points, landmark_weights(track), track.face_found,
-                        inputs.landmark_points, inputs.camera.camera, inputs.fit_settings, window=cfg.window,
-                        overlap=cfg.overlap, cache_dir=cache, progress=None, device=cfg.device,
-                        threads=cfg.threads)
+        return fit_take(inputs.actor, take_landmarks(inputs, track), inputs.camera.camera,
+                        windowed_fit(inputs, cache))
 
     return run_fit_cached(fdir, key, len(track), start, "fit", progress, log, overwrite,
                           frame_map=track.frame_index)

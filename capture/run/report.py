@@ -14,7 +14,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from capture.atomic import write_json
+from capture.io.atomic import write_json
 
 REPORT_JSON = "report.json"
 

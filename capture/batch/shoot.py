@@ -40,8 +40,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from capture.errors import CaptureError
-from capture.run_inputs import DEFAULT_FORMATS, RunConfig, parse_formats
+from capture.io.errors import CaptureError
+from capture.run.inputs import DEFAULT_FORMATS, RunConfig, parse_formats
 
 #: Take settings allowed in ``[defaults]`` and ``[[take]]``, with their TOML types.
 TAKE_SETTINGS: dict[str, tuple[type, ...]] = {
@@ -71,7 +71,7 @@ class Shoot:
     name: str
     out: Path                    # the batch output folder (absolute)
     takes: list[Take]
-    segment_frames: int = 0      # 0: every take is one task; else longer takes are split (capture.batch_segments)
+    segment_frames: int = 0      # 0: every take is one task; else longer takes are split (capture.batch.segments)
     defaults: dict = field(default_factory=dict)
 
 

@@ -25,11 +25,11 @@ import torch
 import trimesh
 
 import capture
-from capture.actor_package import TRAINING_DIR, actor_dir, is_actor, remove_actor, save_actor
-from capture.atomic import atomic_path, write_bytes, write_json
-from capture.errors import CaptureError, Interrupted
-from capture.signals import sigterm_as_interrupt
-from capture.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
+from capture.actor.package import TRAINING_DIR, actor_dir, is_actor, remove_actor, save_actor
+from capture.io.atomic import atomic_path, write_bytes, write_json
+from capture.io.errors import CaptureError, Interrupted
+from capture.io.signals import sigterm_as_interrupt
+from capture.io.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
 from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
 from models.bone_estimate import estimate_bone_surface
 from models.face_frame import FaceFrame, estimate_face_frame, estimate_jaw_pivot, forehead_region

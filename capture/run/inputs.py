@@ -4,7 +4,7 @@ Everything a user can get wrong is checked here, before anything is written: the
 frames, the actor exists, the camera fits the video (a pure resize is adjusted and reported), the
 detector's spec matches its model, the actor has a landmark embedding for the detector, ``--frames``
 parses and lies in the video, ``--formats`` are known. Each problem is one
-:class:`~capture.errors.CaptureError` line.
+:class:`~capture.io.errors.CaptureError` line.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture.errors import CaptureError
-from capture.run_store import digest, file_sha256
+from capture.io.errors import CaptureError
+from capture.run.store import digest, file_sha256
 
 DEFAULT_FORMATS = ("obj", "usd", "npz", "overlay")
 
@@ -135,10 +135,10 @@ class RunInputs:
 
     config: RunConfig
     out: Path
-    video_info: object                 # capture.video.VideoInfo
+    video_info: object                 # capture.io.video.VideoInfo
     video_id: str
     frame_range: tuple[int, int]
-    actor: object                      # capture.actor_package.Actor
+    actor: object                      # capture.actor.package.Actor
     actor_weights_sha256: str
     camera: ResolvedCamera
     detector: object                   # capture.detector.Detector
@@ -183,10 +183,10 @@ def check_window(window: int, overlap: int) -> None:
 
 def resolve_inputs(cfg: RunConfig) -> RunInputs:
     """Open and check every input of ``capture run``; nothing is written."""
-    from capture.actor_package import WEIGHTS, load_actor
+    from capture.actor.package import WEIGHTS, load_actor
     from capture.detector import Detector, embedded_points, read_embedding
     from capture.detector.embedding import embedding_path
-    from capture.video import open_video, video_identity
+    from capture.io.video import open_video, video_identity
 
     check_window(cfg.window, cfg.overlap)
     check_device(cfg.device)

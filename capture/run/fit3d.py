@@ -1,7 +1,7 @@
 """``capture fit3d MESHES --actor A``: fit an actor to a registered 3D mesh sequence (offline scans).
 
 MESHES is a folder of OBJ/PLY meshes in the actor's topology (same vertex order), one per frame,
-sorted by file name. The fit (:func:`capture.fit_take.fit_meshes`) runs in resumable windows like
+sorted by file name. The fit (:func:`capture.fit.take.fit_meshes`) runs in resumable windows like
 ``capture run``; the exports are the same (no overlay: there is no video) and ``report.json`` gives
 the mean 3D vertex distance (mm) to the given mesh per frame instead of a reprojection error.
 """
@@ -11,17 +11,15 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
-import typer
 
-from capture.errors import CaptureError, Interrupted
-from capture.run_inputs import check_device, check_window, parse_formats, resolve_fit_settings
-from capture.run_report import error_stats, frame_table, print_summary
-from capture.run_stages import export_stage, fit_frames, iter_fits, run_fit_cached
-from capture.run_store import claim_run_dir, digest, file_sha256, write_run_json
-from capture.signals import sigterm_as_interrupt
+from capture.io.errors import CaptureError, Interrupted
+from capture.run.inputs import check_device, check_window, resolve_fit_settings
+from capture.run.report import error_stats, frame_table
+from capture.run.stages import export_stage, fit_frames, iter_fits, run_fit_cached
+from capture.run.store import claim_run_dir, digest, file_sha256, write_run_json
+from capture.io.signals import sigterm_as_interrupt
 
 FIT3D_FORMATS = ("obj", "usd", "npz")
 
@@ -55,7 +53,7 @@ class Fit3dConfig:
 
 def load_mesh_sequence(folder: Path, units: str, n_vertices: int) -> tuple[list[Path], np.ndarray]:
     """The meshes of ``folder`` sorted by name -> (files, vertices (T, V, 3) mm); topology checked."""
-    from capture.meshes import MESH_SUFFIXES, load_mesh, units_scale
+    from capture.io.meshes import MESH_SUFFIXES, load_mesh, units_scale
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -75,11 +73,11 @@ def load_mesh_sequence(folder: Path, units: str, n_vertices: int) -> tuple[list[
 
 
 def fit3d_take(cfg: Fit3dConfig) -> dict:
-    from capture.actor_package import WEIGHTS, load_actor
+    from capture.actor.package import WEIGHTS, load_actor
     from capture.export import ExportContext, ExportOptions
-    from capture.fit_take import fit_meshes
-    from capture.run import base_report, finish_report
-    from capture.video import video_identity
+    from capture.fit.take import WindowedFit, fit_meshes
+    from capture.run.take import base_report, finish_report
+    from capture.io.video import video_identity
 
     t_start = time.perf_counter()
     check_window(cfg.window, cfg.overlap)
@@ -109,9 +107,9 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
     stage = "fit"
     with sigterm_as_interrupt():
         try:
-            run_fit_cached(fdir, key, len(meshes), lambda cache: fit_meshes(
-                actor, meshes, settings, window=cfg.window, overlap=cfg.overlap, cache_dir=cache,
-                device=cfg.device, threads=cfg.threads), "fit3d", cfg.progress, log)
+            how = lambda cache: WindowedFit(settings, cfg.window, cfg.overlap, cache, cfg.device, cfg.threads)  # noqa: E731
+            run_fit_cached(fdir, key, len(meshes), lambda cache: fit_meshes(actor, meshes, how(cache)), "fit3d",
+                           cfg.progress, log)
             frames = fit_frames(fdir)
             stage = "export"
             ctx = ExportContext(faces=np.asarray(actor.template.faces), fps=cfg.fps, image_size=(1, 1), camera=None,
@@ -123,7 +121,7 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
         except KeyboardInterrupt:
             raise Interrupted(f"interrupted during {stage}; finished work is kept in {out}: run the same "
                               f"command to resume") from None
-    from capture.run import FrameSummary, _finite
+    from capture.run.take import FrameSummary, _finite
 
     fits = [FrameSummary(int(f.frame), str(f.status), _finite(getattr(f, "error3d_mm", None)))
             for f in iter_fits(fdir)]
@@ -143,29 +141,3 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
         raise CaptureError(f"only {len(fits)} of {len(files)} meshes were fitted; see report.json and rerun")
     write_run_json(out, take_id, label, resolved, fingerprints, "done")
     return report
-
-
-def fit3d_command(
-    meshes: Path = typer.Argument(..., help="Folder of registered OBJ/PLY meshes in the actor's topology, one per "
-                                  "frame, in file-name order."),
-    actor: str = typer.Option(..., "--actor", help="Actor name or folder."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default ./runs/<folder name>)."),
-    units: str = typer.Option("mm", "--units", help="Units of the meshes: mm, cm, m, in."),
-    fps: float = typer.Option(30.0, "--fps", help="Frame rate of the sequence (USD time samples)."),
-    formats: Optional[str] = typer.Option(None, "--formats", help="Exports: obj, ply, usd, npz (default obj,usd,npz)."),
-    preset: str = typer.Option("default", "--preset", help="Fit preset: default or paper."),
-    seed: int = typer.Option(0, "--seed", help="Random seed of the fit."),
-    iterations: Optional[int] = typer.Option(None, "--iterations", help="Fit iterations of the first window "
-                                             "(default: the preset's; later windows use at most as many)."),
-    threads: int = typer.Option(1, "--threads", help="CPU threads of the fit (raise it on a dedicated machine)."),
-    device: str = typer.Option("cpu", "--device", help="Torch device (cpu, cuda)."),
-    window: int = typer.Option(30, "--window", help="Frames per fitting window."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the run in --out."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
-) -> None:
-    """Fit an actor to a registered 3D mesh sequence (offline reprocessing of scans)."""
-    cfg = Fit3dConfig(meshes=meshes, actor=actor, out=out, units=units, fps=fps,
-                      formats=parse_formats(formats, FIT3D_FORMATS), preset=preset, seed=seed, iterations=iterations,
-                      threads=threads, device=device,
-                      window=window, overlap=min(6, max(0, window // 5)), overwrite=overwrite, progress=progress)
-    print_summary(fit3d_take(cfg))

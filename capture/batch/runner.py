@@ -1,12 +1,12 @@
 """``capture batch SHOOT.toml``: every take of a shoot through ``capture run``, in parallel on Ray.
 
-Each take (see :mod:`capture.shoot` for the file) runs the stages of ``capture run`` into its own run
+Each take (see :mod:`capture.batch.shoot` for the file) runs the stages of ``capture run`` into its own run
 folder (``<out>/<take name>``, the same layout and caches as ``capture run --out``), as one Ray task
-(:mod:`capture.batch_ray`): on an embedded local Ray by default, on an existing cluster with
+(:mod:`capture.batch.cluster`): on an embedded local Ray by default, on an existing cluster with
 ``--address``. Takes already done with the same settings and inputs are not run again
-(:mod:`capture.batch_take`); a take that fails unexpectedly is retried once; a bad take never stops
+(:mod:`capture.batch.take`); a take that fails unexpectedly is retried once; a bad take never stops
 the others. The batch writes ``batch_report.json`` and ``batch_summary.csv`` next to the run folders
-(:mod:`capture.batch_report`), each take's log is ``<run folder>/batch_take.log``.
+(:mod:`capture.batch.report`), each take's log is ``<run folder>/batch_take.log``.
 
 Exit status: 0 when every take is done (now or before), 1 when any take failed, 2 for a bad shoot
 file or option, 130 when interrupted (running takes keep their finished work; the same command
@@ -20,15 +20,13 @@ import time
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Optional
 
-import typer
 
-from capture.batch_report import print_summary_table, take_row, totals, write_batch_report
-from capture.batch_take import done_result, take_key, write_take_state
-from capture.errors import CaptureError, Interrupted
-from capture.shoot import Shoot, Take, load_shoot
-from capture.signals import sigterm_as_interrupt
+from capture.batch.report import print_summary_table, take_row, totals, write_batch_report
+from capture.batch.take import done_result, take_key, write_take_state
+from capture.io.errors import CaptureError, Interrupted
+from capture.batch.shoot import Shoot, Take, load_shoot
+from capture.io.signals import sigterm_as_interrupt
 
 BATCH_FORMAT = "capture-batch-report"
 
@@ -57,14 +55,14 @@ class PlannedTake:
     take: Take
     key: str
     frames: int                        # frames to process (0 when the video cannot be read)
-    segments: list[tuple[int, int]]    # more than one: split into segments (capture.batch_segments)
+    segments: list[tuple[int, int]]    # more than one: split into segments (capture.batch.segments)
     done: dict | None                  # the stored result when already done with this key
 
 
 def frame_range(take: Take) -> tuple[int, int]:
     """The take's frames ``[start, end)`` from the video header and its range ((0, 0) if unreadable)."""
-    from capture.run_inputs import parse_frame_range
-    from capture.video import open_video
+    from capture.run.inputs import parse_frame_range
+    from capture.io.video import open_video
 
     try:
         with open_video(take.config.video) as reader:
@@ -76,7 +74,7 @@ def frame_range(take: Take) -> tuple[int, int]:
 
 def plan(shoot: Shoot, segment_frames: int = 0) -> list[PlannedTake]:
     """What each take will do: its key, frames, segments and whether it is done already."""
-    from capture.batch_segments import plan_segments
+    from capture.batch.segments import plan_segments
 
     out = []
     for t in shoot.takes:
@@ -205,8 +203,8 @@ def run_batch(cfg: BatchConfig, console=None) -> dict:
     """
     from rich.console import Console
 
-    from capture import batch_ray
-    from capture.run_report import versions
+    from capture.batch import cluster
+    from capture.run.report import versions
 
     console = console or Console()
     if cfg.threads < 1:
@@ -243,13 +241,13 @@ def run_batch(cfg: BatchConfig, console=None) -> dict:
 
     save()
     if to_run:
-        jobs = [batch_ray.Job(p.take.name, (p.take.config, p.take.name), p.segments if len(p.segments) > 1 else [])
+        jobs = [cluster.Job(p.take.name, (p.take.config, p.take.name), p.segments if len(p.segments) > 1 else [])
                 for p in to_run]
         workers = cfg.workers
         if workers is None and cfg.address is None:
             workers = max(1, (os.cpu_count() or 1) // cfg.threads)
         # The embedded Ray gets as many CPUs as the tasks can use at once (segments count one each).
-        info = batch_ray.connect(cfg.address, min(workers or 1, sum(j.weight for j in jobs)), cfg.threads)
+        info = cluster.connect(cfg.address, min(workers or 1, sum(j.weight for j in jobs)), cfg.threads)
         if workers is None:   # a cluster without --workers: as many tasks as its CPUs hold
             workers = max(1, int(info.cpus // cfg.threads))
         report["ray"] = {**asdict(info), "workers": workers, "threads_per_take": cfg.threads}
@@ -259,7 +257,7 @@ def run_batch(cfg: BatchConfig, console=None) -> dict:
                       highlight=False)
 
         with ShootProgress(to_run, cfg.progress, console) as prog:
-            def on_result(job: batch_ray.Job, res: dict) -> None:
+            def on_result(job: cluster.Job, res: dict) -> None:
                 p = by_name[job.name]
                 status = res["status"]
                 row = take_row(job.name, p.take.config.out, res, status, len(job.attempts))
@@ -278,44 +276,15 @@ def run_batch(cfg: BatchConfig, console=None) -> dict:
 
             try:
                 with sigterm_as_interrupt():
-                    batch_ray.run_tasks(jobs, workers, cfg.threads, on_result, prog.frames)
+                    cluster.run_tasks(jobs, workers, cfg.threads, on_result, prog.frames)
             except KeyboardInterrupt:
                 report["finished"] = _now()
                 save()
                 raise Interrupted(f"batch interrupted; finished takes and work are kept in {shoot.out}: run the "
                                   f"same command to resume") from None
             finally:
-                batch_ray.disconnect(info)
+                cluster.disconnect(info)
     report["finished"] = _now()
     save()
     print_summary_table(report, console)
     return report
-
-
-def batch_command(
-    shoot: Path = typer.Argument(..., help="The shoot file (TOML: \\[shoot], \\[defaults], "
-                                 "\\[\\[take]]; see docs/shoot_example.toml)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Batch output folder (default: the shoot file's "
-                                       "\\[shoot] out, else runs/<shoot name> beside the shoot file)."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Tasks (takes, or segments of long takes) run at a "
-                                          "time (default: this machine's cores / --threads; with --address, the "
-                                          "cluster's CPUs / --threads)."),
-    threads: int = typer.Option(1, "--threads", help="CPU cores (torch and detector threads) per take."),
-    address: Optional[str] = typer.Option(None, "--address", help="Join an existing Ray cluster (e.g. "
-                                          "'auto' or 'head-node:6379') instead of starting a local Ray."),
-    segment_frames: Optional[int] = typer.Option(None, "--segment-frames", help="Split takes longer than this "
-                                                 "into overlapping segments fitted in parallel and blended "
-                                                 "(default: the shoot file's segment_frames, else 0: off)."),
-    dry_run: bool = typer.Option(False, "--dry-run", help="List the takes and what would run; run nothing."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show the shoot's progress bar."),
-) -> None:
-    # The docstring (the command's help) is set below: typer keeps its line breaks.
-    report = run_batch(BatchConfig(shoot=shoot, out=out, workers=workers, threads=threads, address=address,
-                                   segment_frames=segment_frames, dry_run=dry_run, progress=progress))
-    if not dry_run and (report["totals"]["failed"] or report["totals"]["interrupted"]):
-        raise typer.Exit(1)
-
-
-batch_command.__doc__ = ("Capture every take of a shoot (like capture run on each), in parallel on Ray.\n\n"
-                         "Takes done before with the same settings are skipped; a failed take is retried once "
-                         "and never stops the others. Exit status 1 when any take failed.")

@@ -5,12 +5,12 @@
   ``ray start --address ...`` on the others). When the calling process already has Ray initialised
   (a script or a test), that Ray is used as it is.
 * Every take is one task asking for ``threads`` CPUs; the task pins torch to as many threads
-  (:func:`capture.batch_take.process_take`). A take split into segments
-  (:mod:`capture.batch_segments`) is one task per segment plus a merge task that Ray starts when
+  (:func:`capture.batch.take.process_take`). A take split into segments
+  (:mod:`capture.batch.segments`) is one task per segment plus a merge task that Ray starts when
   they are done. At most ``workers`` tasks are in flight.
 * Ray's own task retries are off (``max_retries=0``): a take whose task failed with an unexpected
   error, or whose worker process died, is submitted once more by :func:`run_tasks`; a take that failed
-  on its input (:class:`~capture.errors.CaptureError`) is not (the message says what to fix).
+  on its input (:class:`~capture.io.errors.CaptureError`) is not (the message says what to fix).
 * Fitted frames flow from the tasks to a tiny counter actor (0 CPUs) that the driver polls for the
   shoot-wide progress.
 
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 RETRIES = 1   # extra attempts of a take that failed with an unexpected error or a dead worker
 
@@ -59,7 +59,7 @@ def connect(address: str | None, workers: int, threads: int) -> RayInfo:
                                f"check that 'ray start --head' runs there") from None
         mode, started = "cluster", True
     else:
-        root = str(Path(__file__).resolve().parents[1])   # workers import capture even without an install
+        root = str(Path(__file__).resolve().parents[2])   # workers import capture even without an install
         path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)
         ray.init(num_cpus=workers * threads, include_dashboard=False, log_to_driver=False,
                  logging_level=logging.ERROR, runtime_env={"env_vars": {"PYTHONPATH": path}})
@@ -86,15 +86,15 @@ def _remotes():
 
         @ray.remote(max_retries=0)
         def take_task(cfg, name: str, attempt: int, threads: int, counter):
-            from capture.batch_take import process_take
+            from capture.batch.take import process_take
 
             sink = None if counter is None else (lambda n: counter.add.remote(name, n))
             return process_take(cfg, name, attempt, threads, sink)
 
         @ray.remote(max_retries=0)
         def segment_task(cfg, name: str, start: int, end: int, attempt: int, threads: int, counter):
-            from capture.batch_segments import fit_segment
-            from capture.batch_take import guarded
+            from capture.batch.segments import fit_segment
+            from capture.batch.take import guarded
 
             sink = None if counter is None else (lambda n: counter.add.remote(name, n))
             res = guarded(cfg, name, attempt, threads, lambda c: fit_segment(c, start, end), sink,
@@ -104,8 +104,8 @@ def _remotes():
 
         @ray.remote(max_retries=0)
         def merge_task(cfg, name: str, segments: list, attempt: int, threads: int, *segment_results):
-            from capture.batch_segments import merge_segments
-            from capture.batch_take import guarded, result_from_report
+            from capture.batch.segments import merge_segments
+            from capture.batch.take import guarded, result_from_report
 
             bad = [r for r in segment_results if r.get("status") != "done"]
             if bad:   # the take fails like its first failed segment (and is retried if that one may be)

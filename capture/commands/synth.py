@@ -7,17 +7,7 @@ from typing import Optional
 
 import typer
 
-from capture.errors import CaptureError
-
-
-def _parse_size(text: Optional[str]) -> tuple[int, int] | None:
-    if text is None:
-        return None
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise CaptureError(f"--size must look like 1280x720, got '{text}'") from None
-    return w, h
+from capture.io.errors import CaptureError
 
 
 def _parse_distortion(text: Optional[str]) -> tuple[float, ...] | None:
@@ -59,24 +49,13 @@ def synth_command(
 ) -> None:
     """Render a synthetic take of an actor with known truth: video, camera, ground-truth meshes and
     parameters, landmarks, and a detector that reads the rendered pixels."""
-    from capture.synth.take import SynthConfig, synthesize
+    from capture.synth.progress import synthesize_shown
+    from capture.synth.take import SynthConfig, parse_size
 
     if frames is None:
         frames = 1_000_000 if meshes is not None else 150
-    cfg = SynthConfig(actor=actor, out=out, frames=frames, fps=fps, size=_parse_size(size), preset=preset, seed=seed,
+    cfg = SynthConfig(actor=actor, out=out, frames=frames, fps=fps, size=parse_size(size), preset=preset, seed=seed,
                       landmarks=landmarks, distortion=_parse_distortion(distortion), camera=camera, codec=codec,
                       crf=crf, obj=obj, look=look, overwrite=overwrite, meshes=meshes, units=units)
-    if not progress:
-        path = synthesize(cfg)
-    else:
-        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                      TimeRemainingColumn()) as bar:
-            state: dict = {}
-
-            def on_stage(desc: str, total: int) -> None:
-                state["task"] = bar.add_task(desc, total=total)
-
-            path = synthesize(cfg, on_stage=on_stage, on_frame=lambda: bar.advance(state["task"]))
+    path = synthesize_shown(cfg, progress)
     typer.echo(f"synthetic take written to {path}")

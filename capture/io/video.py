@@ -5,7 +5,7 @@ frame count, frame rate, size and the rotation stored in the container. Frames c
 OpenCV applies the rotation metadata itself (``CAP_PROP_ORIENTATION_AUTO``, on by default), and the
 reported width and height are those of the decoded, rotated frames. Reading is sequential; skipped
 frames are decoded with ``grab()`` (no seeking: frame-accurate on every codec). Problems are one-line
-:class:`~capture.errors.CaptureError` messages.
+:class:`~capture.io.errors.CaptureError` messages.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from capture.errors import CaptureError
+from capture.io.errors import CaptureError
 
 
 @dataclass(frozen=True)

@@ -29,8 +29,8 @@ import torch
 import trimesh
 from safetensors.torch import load_file, save_file
 
-from capture.atomic import atomic_path, write_json
-from capture.errors import CaptureError
+from capture.io.atomic import atomic_path, write_json
+from capture.io.errors import CaptureError
 from models.aim import AIMConfig, AnatomicalFaceModel
 from models.anatomy_edit import edits_from_state
 
