@@ -22,7 +22,10 @@ Energy in ``a`` (the poses, ``F_W`` and ``coeff0`` fixed; all terms of
 * the 2D landmark term (confidence-weighted pseudo-Huber, as in the base solve),
 * ``coeff_weight * mean_{j,p,e} w^2`` and ``coeff_temporal_weight * mean_{j,p} |w_j - w_{j-1}|^2``,
 * ``field_weight * mean_{j,b,e} a^2``: the field stays at 0 where the landmarks say nothing,
-* ``field_temporal_weight * mean_j sum_{b,e} (a_j - a_{j-1})^2``: no flicker.
+* ``field_temporal_weight * mean_j sum_{b,e} (a_j - a_{j-1})^2``: no flicker,
+* ``field_motion_weight * mean_{j,p} |d_jp / unit|^2`` with ``d`` the displacement the field adds: of the
+  fields that explain the landmarks the one that moves the face least, so that motion along the
+  camera axis (which the landmarks do not see) is not invented.
 
 The normal equations are block tridiagonal over frames (blocks of ``B E`` unknowns, coupled only by
 the temporal terms) and are solved by block Cholesky (:func:`solve_block_tridiagonal`), with
@@ -136,11 +139,13 @@ class _FieldProblem:
         self.J, self.P, self.E = self.m.shape
         self.B = self.phi.shape[1]
 
+    def displacement(self, a: torch.Tensor) -> torch.Tensor:
+        """The field's displacement ``(J, P, 3)`` mm (head frame) for coefficients ``a (J, B, E)``."""
+        return torch.einsum("jpe,pec->jpc", torch.einsum("pb,jbe->jpe", self.phi, a), self.E_basis)
+
     def points(self, a: torch.Tensor) -> torch.Tensor:
         """Camera-frame fit points ``(J, P, 3)`` for field coefficients ``a (J, B, E)``."""
-        w = torch.einsum("pb,jbe->jpe", self.phi, a)
-        disp = torch.einsum("jpe,pec->jpc", w, self.E_basis)
-        return self.x0 + torch.einsum("jab,jpb->jpa", self.R, disp)
+        return self.x0 + torch.einsum("jab,jpb->jpa", self.R, self.displacement(a))
 
     def energy(self, a: torch.Tensor) -> float:
         return float(field_energy(self, a))
@@ -158,8 +163,13 @@ class _FieldProblem:
         # G_p = sw Jp R_g E_p^T (2, E): the landmark residual's derivative wrt w_j(c_p)
         JR = torch.einsum("jpia,jab->jpib", sw[..., None] * Jp, self.R)
         G = torch.einsum("jpib,peb->jpie", JR, self.E_basis)                             # (J, P, 2, E)
-        Q = torch.einsum("jpie,jpif->jpef", G, G).reshape(J, P, E * E).float()          # (J, P, E^2)
+        Q = torch.einsum("jpie,jpif->jpef", G, G)                                         # (J, P, E, E)
         gp = torch.einsum("jpie,jpi->jpe", G, sw * r)                                    # (J, P, E)
+        if s.field_motion_weight > 0:  # residual sqrt(k) E_p^T phi_p a_j / unit per point
+            k = s.field_motion_weight / (J * P * s.length_unit_mm ** 2)
+            Q = Q + k * torch.einsum("pec,pfc->pef", self.E_basis, self.E_basis)[None]
+            gp = gp + k * torch.einsum("pec,jpc->jpe", self.E_basis, self.displacement(a))
+        Q = Q.reshape(J, P, E * E).float()
         # H_j[b, e, c, f] = sum_p phi_pb phi_pc Q_p[e, f], accumulated in float32 over each point's
         # NEAREST_CENTRES largest weights (the rest are < 1e-3 for the default spacing): the Gauss-Newton
         # matrix shapes the step only; the gradient and the energy that accepts a step are exact.
@@ -215,6 +225,8 @@ def field_energy(prob: _FieldProblem, a: torch.Tensor) -> torch.Tensor:
     w = prob.m + torch.einsum("pb,jbe->jpe", prob.phi, a)
     e = e + s.coeff_weight * w.square().mean()
     e = e + s.field_weight * a.square().mean()
+    if s.field_motion_weight > 0:
+        e = e + s.field_motion_weight * (prob.displacement(a) / s.length_unit_mm).square().sum(-1).mean()
     if J > 1:
         e = e + s.coeff_temporal_weight * (w[1:] - w[:-1]).square().sum(-1).mean()
         e = e + s.field_temporal_weight * (a[1:] - a[:-1]).square().sum((-1, -2)).mean()

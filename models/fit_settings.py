@@ -67,6 +67,10 @@ class FitSettings:
     """Weight of the mean squared field coefficient ``a`` (keeps the field at 0 where landmarks say nothing)."""
     field_temporal_weight: float = 0.0
     """Weight of the squared first differences over frames of ``a`` (summed over centres and expressions)."""
+    field_motion_weight: float = 0.0
+    """Weight of the mean squared displacement the field adds (over frames and fit points, in
+    ``length_unit_mm``): of the fields that explain the landmarks, the one that moves the face least,
+    so a motion the camera cannot see (along its axis) is not invented."""
     field_iterations: int = 0
     """Gauss-Newton iterations of the field after each Levenberg-Marquardt solve of the base."""
 
