@@ -36,15 +36,20 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-import sys  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repo's packages
-from benchmarks.heldout import DEFAULT_ICT, load_ict_identity, make_performance, sample_actor_split
+from benchmarks.heldout import (
+    DEFAULT_ICT,
+    load_ict_identity,
+    make_performance,
+    sample_actor_split,
+)
 from benchmarks.outofspan import at_landmarks, fit_blendshapes_2d, landmark_take
 from benchmarks.takes import DEFAULT_ACTOR, REPO, accuracy
 

@@ -54,6 +54,17 @@ def monocular_priors(s: FitSettings, obs: Observations) -> FitSettings:
     return replace(s, pose_accel_weight=0.0, coeff_temporal_weight=0.0, jaw_prior_weight=0.0)
 
 
+def jaw_prior_target(actor: ActorAtPoints, s: FitSettings, coeffs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where the jaw prior pulls the jaw of J frames with mean coefficients ``coeffs (J, E)``:
+    ``(R (J, 3, 3), t (J, 3) mm)`` (see :attr:`FitSettings.jaw_prior_target`)."""
+    if s.jaw_prior_target == "expressions":
+        return actor.jaw_of(coeffs)
+    if s.jaw_prior_target != "rest":
+        raise ValueError(f"jaw_prior_target must be 'rest' or 'expressions', got {s.jaw_prior_target!r}")
+    J = coeffs.shape[0]
+    return torch.eye(3, dtype=coeffs.dtype, device=coeffs.device).expand(J, 3, 3), coeffs.new_zeros(J, 3)
+
+
 def energy_terms(actor: ActorAtPoints, obs: Observations, s: FitSettings, pose: FramePose,
                  w: torch.Tensor) -> dict[str, torch.Tensor]:
     """The terms of the fitting energy that depend on the poses and coefficients ``w (J, P, E)``."""
@@ -75,9 +86,9 @@ def energy_terms(actor: ActorAtPoints, obs: Observations, s: FitSettings, pose: 
         terms["pose_accel"] = s.pose_accel_weight * (acc(pose.head_t / unit) + acc(pose.head_R) +
                                                      acc(pose.jaw_t / unit) + acc(pose.jaw_R))
     if s.jaw_prior_weight > 0:
-        eye = torch.eye(3, dtype=w.dtype, device=w.device)
-        terms["jaw"] = s.jaw_prior_weight * ((pose.jaw_t / s.length_unit_mm).square().sum(-1).mean() +
-                                             (pose.jaw_R - eye).square().sum((-1, -2)).mean())
+        tR, tt = jaw_prior_target(actor, s, w.mean(1))
+        terms["jaw"] = s.jaw_prior_weight * (((pose.jaw_t - tt) / s.length_unit_mm).square().sum(-1).mean() +
+                                             (pose.jaw_R - tR).square().sum((-1, -2)).mean())
     if s.coeff_temporal_weight > 0 and J > 1:
         terms["coeff_temporal"] = s.coeff_temporal_weight * (w[1:] - w[:-1]).square().sum(-1).mean()
     return terms

@@ -38,6 +38,7 @@ import math
 
 import torch
 
+from calib.projection import project_points
 from models.fit_energy import observation_weights, robust_2d
 from models.fit_lm import projection_jacobian
 from models.fit_state import ActorAtPoints, Observations, SequenceFit
@@ -216,9 +217,7 @@ class _FieldProblem:
 
 def field_energy(prob: _FieldProblem, a: torch.Tensor) -> torch.Tensor:
     """The terms of the fitting energy that depend on the field coefficients ``a (J, B, E)`` (module docstring)."""
-    s, J, P, E, B = prob.s, prob.J, prob.P, prob.E, prob.B
-    from calib.projection import project_points
-
+    s, J = prob.s, prob.J
     x = prob.points(a)
     r2 = (project_points(x, prob.K, prob.dist) - prob.p2d).square().sum(-1)
     e = (prob.w2d * robust_2d(r2, s.robust_px)).sum() / prob.w2d.sum().clamp_min(1e-12)
@@ -245,7 +244,7 @@ def solve_field(fit: SequenceFit, actor: ActorAtPoints, obs: Observations, itera
         if not bool(fit.field_centres.any()):
             fit.field_centres.copy_(field_centres(actor, fit.field.shape[1]))
     prob = _FieldProblem(fit, actor, obs)
-    J, m = prob.J, prob.B * prob.E
+    J = prob.J
     a = prob.a0.clone()
     energy = prob.energy(a)
     mu, it = 1e-4, 0

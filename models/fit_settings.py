@@ -44,6 +44,10 @@ class FitSettings:
     ``length_unit_mm``, rotation matrix minus identity): the jaw's translation along the view and an
     opening expression explain landmarks almost alike, and this keeps the jaw where nothing moves it.
     Not in the paper (0 there)."""
+    jaw_prior_target: str = "rest"
+    """What the jaw prior pulls towards: ``rest`` (identity, 0) or ``expressions``: the jaw that the
+    frame's expression coefficients imply through the actor's learned jaw transform of each training
+    shape (:meth:`~models.fit_state.ActorAtPoints.jaw_of`; rest for actors without them)."""
     lm_iterations: int = 0
     """Levenberg-Marquardt iterations on each frame's *base* (head and jaw pose, one coefficient
     offset per expression; :mod:`models.fit_lm`) before the Adam iterations, with the networks'

@@ -20,7 +20,7 @@ from torch import nn
 from models.checks import check_shapes
 from models.fit_settings import FitSettings
 from models.lbs import lbs_jaw
-from models.rotation import IDENTITY_6D, apply_rigid, rot6d_to_matrix
+from models.rotation import IDENTITY_6D, apply_rigid, rot6d_to_matrix, so3_exp
 
 
 @dataclass
@@ -34,14 +34,36 @@ class ActorAtPoints:
     jaw_pivot: torch.Tensor     # (3,)
     center: torch.Tensor        # (3,) template normalisation, for F_W's input
     scale: float
+    jaw_rotvec: torch.Tensor | None = None   # (E, 3) learned jaw rotation (axis-angle, rad) of each expression
+    jaw_shift: torch.Tensor | None = None    # (E, 3) mm, its jaw translation (None: unknown, rest)
 
     @classmethod
     @torch.no_grad()
-    def query(cls, model, points: torch.Tensor) -> ActorAtPoints:
-        """Evaluate ``model`` (an :class:`~models.aim.AnatomicalFaceModel`) at ``points (P, 3)``."""
+    def query(cls, model, points: torch.Tensor, jaw_rot6d: torch.Tensor | None = None,
+              jaw_t: torch.Tensor | None = None) -> ActorAtPoints:
+        """Evaluate ``model`` (an :class:`~models.aim.AnatomicalFaceModel`) at ``points (P, 3)``; with the
+        actor's learned per-expression jaw transforms ``jaw_rot6d (E, 6)``, ``jaw_t (E, 3)`` mm."""
         a = model(points)
+        rotvec = shift = None
+        if jaw_rot6d is not None and jaw_t is not None:
+            from scipy.spatial.transform import Rotation
+
+            R = rot6d_to_matrix(jaw_rot6d.detach().double()).cpu().numpy()
+            rotvec = torch.as_tensor(Rotation.from_matrix(R).as_rotvec()).to(points)
+            shift = jaw_t.detach().to(points)
         return cls(points=points, neutral=a.neutral, skin_weight=a.skin_weight, expressions=a.expressions,
-                   jaw_pivot=model.jaw_pivot, center=model.center, scale=float(model.config.scale))
+                   jaw_pivot=model.jaw_pivot, center=model.center, scale=float(model.config.scale),
+                   jaw_rotvec=rotvec, jaw_shift=shift)
+
+    def jaw_of(self, coeffs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The jaw the expressions ``coeffs (J, E)`` imply: ``exp(sum_i w_i r_i)``, ``sum_i w_i t_i`` with the
+        actor's learned jaw transform ``(r_i, t_i)`` of each expression (its training shapes are
+        ``LBS(s0, T_b^i) + E_i``); rest (identity, 0) when they are unknown. Returns ``(J, 3, 3)``, ``(J, 3)``."""
+        J = coeffs.shape[0]
+        if self.jaw_rotvec is None or self.jaw_shift is None:
+            return (torch.eye(3, dtype=coeffs.dtype, device=coeffs.device).expand(J, 3, 3),
+                    coeffs.new_zeros(J, 3))
+        return so3_exp(coeffs @ self.jaw_rotvec.to(coeffs)), coeffs @ self.jaw_shift.to(coeffs)
 
     @property
     def n_expressions(self) -> int:

@@ -5,10 +5,16 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from models.fit import FitSettings, Observations, SequenceFit, fitting_losses
-from models.fit_field import (_FieldProblem, farthest_points, field_energy, rbf_basis, solve_block_tridiagonal,
-                              solve_field)
 from calib.projection import project_points
+from models.fit import FitSettings, Observations, SequenceFit, fitting_losses
+from models.fit_field import (
+    _FieldProblem,
+    farthest_points,
+    field_energy,
+    rbf_basis,
+    solve_block_tridiagonal,
+    solve_field,
+)
 from tests.test_fit import DIST, K, toy_actor, truth
 
 
@@ -74,7 +80,7 @@ def test_field_energy_and_gradient_match_the_fitting_energy():
                                                    actor.expressions) / s.length_unit_mm).square().sum(-1).mean())
     torch.testing.assert_close(e.detach(), ref, rtol=1e-9, atol=1e-12)
     grad, = torch.autograd.grad(e, a)
-    D, U, g = prob.normal_equations(a.detach())
+    _, _, g = prob.normal_equations(a.detach())
     # J^T r is half the exact gradient (IRLS weights included)
     torch.testing.assert_close(2 * g.reshape(grad.shape), grad, rtol=1e-6, atol=1e-9)
 
@@ -97,3 +103,34 @@ def test_field_solve_recovers_a_field_it_can_represent():
     obs = Observations(points2d=uv, weights=torch.ones(4, 40, dtype=torch.float64), K=K, dist=DIST)
     solve_field(start, actor, obs, 20)
     torch.testing.assert_close(start.field, truth_fit.field, rtol=0, atol=1e-6)
+
+
+def test_jaw_prior_towards_the_expressions_jaw():
+    """``jaw_of``: the learned jaw transforms blended by the coefficients (scipy's rotation vectors); the
+    Levenberg-Marquardt energy with that target equals the fitter's energy at the base."""
+    from scipy.spatial.transform import Rotation
+
+    from models.fit_lm import _Problem
+
+    actor = toy_actor(P=30, E=3, seed=2)
+    rv = np.array([[0.2, 0.0, 0.01], [0.0, 0.05, -0.1], [0.03, 0.02, 0.0]])
+    tt = torch.tensor([[0.0, -2.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.5, 0.5]], dtype=torch.float64)
+    from models.fit import ActorAtPoints
+    jaw_actor = ActorAtPoints(**{**actor.__dict__, "jaw_rotvec": torch.as_tensor(rv), "jaw_shift": tt})
+    w = torch.tensor([[0.5, 0.2, 0.0], [1.0, -0.3, 0.4]], dtype=torch.float64)
+    R, t = jaw_actor.jaw_of(w)
+    np.testing.assert_allclose(R.numpy(), Rotation.from_rotvec(w.numpy() @ rv).as_matrix(), atol=1e-12)
+    torch.testing.assert_close(t, w @ tt)
+    head_R, head_t, face = truth(toy_actor(P=30, E=4, seed=2), J=3)
+    s = FitSettings(code_dim=4, hidden=8, jaw_prior_weight=0.7, jaw_prior_target="expressions")
+    fit = SequenceFit(3, 3, s, head_R, head_t).double()
+    with torch.no_grad():
+        fit.coeff0.copy_(0.3 * torch.randn(3, 3, dtype=torch.float64))
+        fit.jaw_R0.copy_(torch.as_tensor(Rotation.from_rotvec([[0.1, 0, 0]] * 3).as_matrix()))
+    obs = Observations(points2d=project_points(face, K, DIST), weights=torch.ones(3, 30, dtype=torch.float64), K=K,
+                       dist=DIST)
+    with torch.no_grad():
+        terms = fitting_losses(fit, jaw_actor, obs)
+    ref = float(terms["total"] - terms["temporal"])
+    assert abs(_Problem(fit, jaw_actor, obs).energy() - ref) < 1e-9 * abs(ref)
+    assert float(terms["jaw"]) > 0

@@ -38,7 +38,7 @@ def rendered(tmp_path_factory):
 
 
 def test_truth_is_the_sequence(rendered):
-    root, actor, seq, out = rendered
+    _, actor, seq, out = rendered
     report = json.loads((out / "truth.json").read_text())
     assert report["meshes"]["frames"] == 3 and report["settings"]["frames"] == 3
     truth = np.load(out / "truth_meshes.npz")["vertices"]
@@ -56,7 +56,7 @@ def test_truth_is_the_sequence(rendered):
 
 
 def test_obj_folder_in_cm_equals_npz(rendered, tmp_path):
-    root, actor, seq, out = rendered
+    root, actor, _, out = rendered
     out2 = tmp_path / "take_obj"
     assert main(["synth", "--actor", str(actor), "--out", str(out2), "--meshes", str(root / "objs"), "--units", "cm",
                  "--preset", "frontal", "--size", "640x360", "--landmarks", "300", "--frames", "2",
@@ -67,7 +67,7 @@ def test_obj_folder_in_cm_equals_npz(rendered, tmp_path):
 
 
 def test_bad_sequences(rendered, tmp_path, capsys):
-    root, actor, seq, _ = rendered
+    _, actor, seq, _ = rendered
     bad = tmp_path / "bad.npz"
     np.savez(bad, vertices=seq[:, :-5])
     assert main(["synth", "--actor", str(actor), "--out", str(tmp_path / "o1"), "--meshes", str(bad),

@@ -456,7 +456,8 @@ def _fingerprint(*parts) -> str:
 
 
 def _query(actor, points: np.ndarray, device) -> ActorAtPoints:
-    return ActorAtPoints.query(actor.model, torch.as_tensor(points, dtype=torch.float32, device=device))
+    return ActorAtPoints.query(actor.model, torch.as_tensor(points, dtype=torch.float32, device=device),
+                               getattr(actor, "jaw_rot6d", None), getattr(actor, "jaw_t", None))
 
 
 # ----------------------------------------------------------------------------------------------
