@@ -17,6 +17,10 @@ Outputs in the take directory (all written atomically; ``truth.json`` last, it m
     meshes/frame_XXXXXX.obj      with --obj only
     truth.json                   resolved settings, seed, timings, versions, files
 
+With ``meshes`` (``capture synth --meshes SEQ``, :mod:`capture.synth.mesh_sequence`) the face of each
+frame is the given registered mesh (template frame, mm) instead of the actor's model, with the preset's
+head motion on top: the truth of shapes outside the actor's span.
+
 The actor package gets ``landmarks/<name>.json`` (the detector's embedding; exact by construction).
 Truth meshes are in the camera frame; the head-frame mesh of frame j is
 ``head_R[j]^T (v - head_t[j])``.
