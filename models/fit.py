@@ -25,6 +25,12 @@ is the whole fit (``adam_on_landmarks``); 3D fits then run Adam on the networks 
 varying detail and polish the base again.
 
 The fitter owns every per-frame parameter (:class:`SequenceFit`); the actor model stays frozen.
+
+Modules: settings and presets in :mod:`models.fit_settings`, the state (:class:`SequenceFit`,
+:class:`ActorAtPoints`, :class:`Observations`) in :mod:`models.fit_state`, the energy in
+:mod:`models.fit_energy`, the Levenberg-Marquardt base solve in :mod:`models.fit_lm` and the
+per-point coefficient field of 2D fits (``--preset field``) in :mod:`models.fit_field`; this module
+runs them (:func:`fit_sequence`) and re-exports their public names. None imports this one.
 """
 
 from __future__ import annotations

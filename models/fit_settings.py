@@ -40,10 +40,11 @@ class FitSettings:
     """Weight of the squared first differences over frames of the coefficients ``w_j(c)`` (mean over
     points): keeps expressions from flickering. Not in the paper (0 there)."""
     jaw_prior_weight: float = 0.0
-    """Weight of the squared distance of the jaw transform from rest (translation in
-    ``length_unit_mm``, rotation matrix minus identity): the jaw's translation along the view and an
-    opening expression explain landmarks almost alike, and this keeps the jaw where nothing moves it.
-    Not in the paper (0 there)."""
+    """Weight of the squared distance of the jaw transform from its target (``jaw_prior_target``;
+    translation in ``length_unit_mm``, rotation matrices subtracted): the jaw's translation along the
+    view and an opening expression explain landmarks almost alike, and this keeps the jaw where
+    nothing moves it. Not in the paper (0 there). The Levenberg-Marquardt solve holds the target at
+    its value at the solve's start (:mod:`models.fit_lm`)."""
     jaw_prior_target: str = "rest"
     """What the jaw prior pulls towards: ``rest`` (identity, 0) or ``expressions``: the jaw that the
     frame's expression coefficients imply through the actor's learned jaw transform of each training

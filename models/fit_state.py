@@ -122,7 +122,9 @@ class SequenceFit(nn.Module):
     (rest: identity, 0) and an offset ``coeff0 (J, E)`` added to ``w_j(c)`` at every point (0).
     A zero network output - the state at initialisation - is the base itself. The paper's fit keeps
     the jaw and coefficient base at rest; the default preset solves the base by Levenberg-Marquardt
-    (:mod:`models.fit_lm`).
+    (:mod:`models.fit_lm`). With ``settings.field_centres > 0`` the state also holds a per-point
+    coefficient field (``field_centres (B, 3)``, ``field (J, B, E)``; :mod:`models.fit_field`), part of
+    :meth:`net_coefficients` like F_W's output.
     """
 
     def __init__(self, n_frames: int, n_expressions: int, settings: FitSettings,
