@@ -21,22 +21,36 @@ def calibrate_command(
     out: Annotated[Path, typer.Option(
         "--out", help="Camera file to write: .json (capture format) or .yaml/.yml/.xml (OpenCV). "
         "<stem>.report.json and <stem>.report.png are written beside it.")] = Path("camera.json"),
-    max_views: Annotated[int, typer.Option(help="Use at most this many views (chosen for coverage and tilt).")] = 40,
+    max_views: Annotated[int, typer.Option(
+        help="Use at most this many views (bounds the cost; over it, distinct views chosen for coverage and "
+        "tilt come first, near-duplicates last).")] = 60,
     max_frames: Annotated[int, typer.Option(
         help="Examine at most this many evenly spaced frames of a video (or images of a folder).")] = 300,
-    min_views: Annotated[int, typer.Option(help="Fail unless at least this many usable views remain.")] = 6,
+    min_views: Annotated[int, typer.Option(
+        help="Fail unless at least this many usable views remain (fewer than 6 get warnings).")] = 4,
     min_corners: Annotated[int, typer.Option(help="Ignore ChArUco views with fewer detected corners.")] = 6,
-    blur_threshold: Annotated[float, typer.Option(
-        help="Drop views less sharp than this fraction of the sharpest views (90th percentile); 0 keeps all.")] = 0.6,
+    max_blur: Annotated[float, typer.Option(
+        help="Drop views whose board edges are wider than this fraction of the board's square size in "
+        "that view (too blurred for sub-pixel corners); 0 keeps all.")] = 0.4,
     outlier_factor: Annotated[float, typer.Option(
-        help="Reject views whose RMS exceeds this multiple of the median view RMS, then recalibrate; 0 = off.")] = 3.0,
+        help="After a first solve, reject views whose RMS exceeds this multiple of the median view RMS "
+        "and 1 px, then recalibrate; 0 = off.")] = 3.0,
+    model: Annotated[str, typer.Option(
+        help="Lens distortion model: auto (chosen by the hold-out check) or one of k1-k2, k1-k2+p, k1-k3, "
+        "k1-k3+p (OpenCV's default), k1-k6, k1-k6+p (rational).")] = "auto",
+    tolerance_px: Annotated[float, typer.Option(
+        help="Warn when image corners are not covered, the predicted 2-sigma uncertainty or the hold-out "
+        "spread exceeds this many pixels anywhere in the image.")] = 1.0,
+    strict: Annotated[bool, typer.Option(
+        help="Fail (no camera file) instead of warning when the model extrapolates or is not determined.")] = False,
     fix_principal_point: Annotated[bool, typer.Option(
         help="Keep the principal point at the image centre ((w-1)/2, (h-1)/2).")] = False,
     fix_aspect_ratio: Annotated[bool, typer.Option(help="Force fx = fy (square pixels).")] = False,
     fix_k3: Annotated[bool, typer.Option(
-        help="Estimate k1, k2, p1, p2 only (k3 = 0): for narrow lenses or few views.")] = False,
-    zero_tangent: Annotated[bool, typer.Option(help="Force p1 = p2 = 0.")] = False,
-    rational: Annotated[bool, typer.Option(help="Also estimate k4, k5, k6 (wide lenses, many views).")] = False,
+        help="Only consider models without k3 (k1-k2, k1-k2+p).")] = False,
+    zero_tangent: Annotated[bool, typer.Option(help="Only consider models without p1, p2.")] = False,
+    rational: Annotated[bool, typer.Option(
+        help="Only consider the rational models (k1-k6, k1-k6+p; wide lenses, many views).")] = False,
     progress: Annotated[bool, typer.Option(help="Show a progress bar on stderr.")] = True,
     duplicate_px: Annotated[Optional[float], typer.Option(
         help="Views whose shared corners moved less than this (pixels) are near-duplicates "
@@ -45,10 +59,14 @@ def calibrate_command(
     """Intrinsics and distortion from ChArUco or checkerboard footage.
 
     INPUT is a video file or a folder of images. Detects the board with
-    OpenCV, keeps sharp, non-duplicate views covering the image and many
-    board tilts, calibrates with OpenCV (rejecting outlier views), and
-    writes the camera file, a JSON report (views used and dropped and why,
-    per-view errors, standard deviations of fx, fy, cx, cy) and a PNG.
+    OpenCV and drops only unusable views (too few corners, failed geometric
+    check, too blurred for sub-pixel corners, near-duplicates, outliers
+    after a first solve; over --max-views the most useful are kept).
+    Calibrates with OpenCV, choosing the lens model by a hold-out check,
+    and writes the camera file, a JSON report (views used and dropped and
+    why, hold-out errors, uncertainty, warnings) and two PNGs (per-view
+    errors; coverage heat map, predicted uncertainty, hold-out spread).
+    Warns when the model extrapolates or is not determined; --strict fails.
 
     Board SPEC grammar (lengths in mm):
 
@@ -70,8 +88,9 @@ def calibrate_command(
 
     run_calibrate(CalibrateSettings(
         input=input, board=board, out=out, max_views=max_views, max_candidates=max_frames,
-        min_views=min_views, min_corners=min_corners, blur_threshold=blur_threshold,
-        duplicate_px=duplicate_px, outlier_factor=outlier_factor,
+        min_views=min_views, min_corners=min_corners, max_blur=max_blur,
+        duplicate_px=duplicate_px, outlier_factor=outlier_factor, model=model,
         fix_principal_point=fix_principal_point, fix_aspect_ratio=fix_aspect_ratio, fix_k3=fix_k3,
-        zero_tangent=zero_tangent, rational=rational, progress=progress,
+        zero_tangent=zero_tangent, rational=rational, tolerance_px=tolerance_px, strict=strict,
+        progress=progress,
     ))

@@ -65,3 +65,52 @@ def save_calibration_plot(
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     return Path(path)
+
+
+def save_coverage_plot(path: str | os.PathLike, diag, view_points: list[np.ndarray], title: str = "") -> Path:
+    """Write a PNG of what the calibration knows where (``diag``: a :class:`calib.diagnostics.Diagnostics`):
+    left, used corners per cell as a heat map (white: no corner); middle, the predicted 1-sigma pixel
+    uncertainty; right, the hold-out spread. The middle and right panels share a colour scale in px,
+    with the ``tolerance_px`` contour drawn; black dots are the used corners."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    w, h = diag.image_size
+    nx, ny = diag.grid_shape
+    fig = Figure(figsize=(18, 5.0), dpi=90, layout="constrained")
+    axes = fig.subplots(1, 3)
+    counts = diag.coverage.counts.astype(float)
+    shown = np.where(counts > 0, counts, np.nan)
+    im = axes[0].imshow(shown, extent=(-0.5, w - 0.5, h - 0.5, -0.5), cmap="inferno_r", vmin=0,
+                        vmax=max(2.0, float(counts.max())), interpolation="nearest")
+    fig.colorbar(im, ax=axes[0], shrink=0.8, label="used corners per cell")
+    gaps = ", ".join(f"{v:.0f}" for v in diag.coverage.corner_gaps_px.values())
+    axes[0].set_title(f"coverage: {1 - diag.coverage.uncovered_fraction:.0%} of the image within "
+                      f"{diag.coverage.reach_px:.0f} px of a corner\nimage-corner gaps TL, TR, BL, BR: {gaps} px",
+                      fontsize=9)
+    vmax = max(diag.tolerance_px, float(diag.uncertainty_px.max()), float(diag.spread_px.max()))
+    for ax, values, name in ((axes[1], diag.uncertainty_px, "predicted uncertainty (1 sigma)"),
+                             (axes[2], diag.spread_px, "hold-out spread (max over folds)")):
+        img = values.reshape(ny, nx)
+        im = ax.imshow(img, extent=(-0.5, w - 0.5, h - 0.5, -0.5), cmap="viridis", vmin=0, vmax=vmax,
+                       interpolation="bilinear")
+        xs, ys = diag.grid[:nx, 0], diag.grid[::nx, 1]
+        if img.max() > diag.tolerance_px > img.min():
+            ax.contour(xs, ys, img, levels=[diag.tolerance_px], colors="w", linewidths=1.2)
+        fig.colorbar(im, ax=ax, shrink=0.8, label="px")
+        ax.set_title(f"{name}: max {values.max():.2f} px (white: {diag.tolerance_px:g} px)", fontsize=9)
+    for ax in axes:
+        if view_points:
+            pts = np.concatenate(view_points)
+            ax.scatter(pts[:, 0], pts[:, 1], s=1.5, c="k", linewidths=0)
+        ax.set_xlim(-0.5, w - 0.5)
+        ax.set_ylim(h - 0.5, -0.5)
+        ax.set_aspect("equal")
+    if title or diag.warnings:
+        fig.suptitle((title + ("  -  " if title and diag.warnings else "")
+                      + (f"{len(diag.warnings)} warning(s), see report" if diag.warnings else "")), fontsize=10)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return Path(path)

@@ -1,20 +1,27 @@
-"""Choosing calibration views: drop blurred frames and near-duplicates, prefer coverage and tilts, cap.
+"""Choosing calibration views: drop only unusable views; over ``--max-views`` keep the most useful.
 
-Everything here works on :class:`Candidate` records (a detection plus a few numbers measured on
-its frame); no file or video access. The rules, in order:
+Everything here works on :class:`Candidate` records (a detection plus a few numbers measured on its
+frame); no file or video access. A view is dropped only for a reason that makes it unusable on its
+own, never for being worse than the other views:
 
-1. **Blur.** ``sharpness`` is the variance of the Laplacian over the board's bounding box divided
-   by the mean squared gradient there (units 1/px^2, roughly 1 / edge width^2). The division makes
-   it independent of the board's size in the image and of its contrast, so one relative threshold
-   works for near and far boards: a view is *blurred* when its sharpness is below
-   ``blur_threshold`` times the 90th percentile of all detected views.
-2. **Near-duplicates.** Two views are near-duplicates when they share at least half of their
-   corners and those corners moved on average less than ``duplicate_px`` pixels; the sharper view
-   is kept (a board held still in a video gives many such frames).
-3. **Coverage and tilt, capped.** Views are picked greedily, each time the one that adds the most:
-   new cells of a coverage grid over the image, a new board-tilt bin (15 degrees wide, tilts from a
-   rough PnP pose), distance to the already chosen views in (position, size, tilt), and a little
-   sharpness. Picking stops at ``max_views``; the rest are dropped as adding the least.
+1. **Geometry** (:mod:`calib.checks`, before a view becomes a candidate): corners that disagree with
+   their neighbours are removed; a view with many such corners, or too few left, is dropped.
+2. **Blur the corner detector cannot work with.** ``edge_width_px`` is the width of the board's
+   black/white edges (contrast over the steepest gradient, in the worst direction, so motion blur
+   counts; about 2 px for a sharp image, 2.5 sigma for a Gaussian blur of sigma px). Sub-pixel corner
+   refinement stays unbiased under blur as long as the blurred edges of a square do not merge, so a
+   view is *blurred* only when the edge width exceeds ``max_blur`` (0.4) times the board's square
+   size in that view (``square_px``). This does not depend on the other views.
+3. **Near-duplicates** are views that share at least half of their corners with a distinct view
+   and whose corners moved on average less than ``duplicate_px`` (default 1 % of the image
+   diagonal) (a board held still in a video gives many). They add little geometry but independent
+   corner noise, so they are kept while the views fit under ``max_views``; only over the cap are
+   they the first to go (the sharpest twin of each group is the distinct view).
+4. **Over the cap.** When more than ``max_views`` distinct views remain, they are picked greedily,
+   each time the one that adds the most new cells of a coverage grid, a new board-tilt bin (15
+   degrees, from a rough PnP pose), distance to the chosen views in (position, size, tilt), and
+   sharpness; the rest are listed as "over the cap". Free places under the cap are filled with
+   near-duplicates, sharpest first; the others are listed as "near-duplicate of" their twin.
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ from calib.detect import Detection
 TILT_BIN_DEG = 15.0
 GRID_COLS = 8  # coverage grid used for choosing views; rows follow the aspect ratio
 COVERAGE_COLS = 16  # finer grid for the reported coverage figure
+MAX_BLUR = 0.4  # edge width / square size above which a view is too blurred for corner refinement
 
 
 @dataclass(frozen=True)
@@ -38,11 +46,17 @@ class Candidate:
     label: str  # "frame 120" or the image file name
     frame: int  # frame number in the video, or index of the image in the sorted folder
     detection: Detection
-    sharpness: float
+    edge_width_px: float  # blur: width of the board's edges (module docstring)
+    square_px: float  # the board's square side in this view (median over neighbouring corners)
     centre: tuple[float, float]  # mean corner position / image size, in [0, 1]
     area: float  # bounding-box area of the corners / image area
     tilt_deg: tuple[float, float]  # board normal's angle about the camera x and y axes
     cells: frozenset[int] = field(default_factory=frozenset)
+
+    @property
+    def blur(self) -> float:
+        """Edge width over square size: 0.05-0.1 for a sharp view, above :data:`MAX_BLUR` unusable."""
+        return self.edge_width_px / max(self.square_px, 1e-6)
 
     @property
     def features(self) -> np.ndarray:
@@ -79,8 +93,13 @@ def coverage_fraction(points: list[np.ndarray], image_size: tuple[int, int], col
     return len(cells_of(np.concatenate(points), image_size, cols)) / (gx * gy)
 
 
-def measure_sharpness(gray: np.ndarray, points: np.ndarray) -> float:
-    """Normalised variance of the Laplacian over the corners' bounding box (see module docstring)."""
+def measure_edge_width(gray: np.ndarray, points: np.ndarray) -> float:
+    """Width (px) of the board's edges over the corners' bounding box (module docstring, rule 2).
+
+    Contrast is the 2nd-98th percentile intensity range; the steepest gradient is the 99.5th
+    percentile of the directional derivative along 0, 45, 90 and 135 degrees, and the widest of
+    the four directions counts (motion blur widens the edges across the motion only).
+    """
     import cv2
 
     h, w = gray.shape
@@ -88,13 +107,30 @@ def measure_sharpness(gray: np.ndarray, points: np.ndarray) -> float:
     x0, y0 = np.floor(points.min(0)).astype(int) - pad
     x1, y1 = np.ceil(points.max(0)).astype(int) + pad + 1
     roi = gray[max(y0, 0):min(y1, h), max(x0, 0):min(x1, w)].astype(np.float32)
-    if roi.shape[0] < 3 or roi.shape[1] < 3:
-        return 0.0
-    lap = cv2.Laplacian(roi, cv2.CV_32F)
-    gx = cv2.Sobel(roi, cv2.CV_32F, 1, 0) / 8.0
+    if roi.shape[0] < 5 or roi.shape[1] < 5:
+        return float("inf")
+    lo, hi = np.percentile(roi, [2, 98])
+    contrast = float(hi - lo)
+    if contrast < 1.0:
+        return float("inf")
+    gx = cv2.Sobel(roi, cv2.CV_32F, 1, 0) / 8.0  # per-pixel intensity step
     gy = cv2.Sobel(roi, cv2.CV_32F, 0, 1) / 8.0
-    grad = float(np.mean(gx * gx + gy * gy))
-    return float(lap.var()) / grad if grad > 1e-6 else 0.0
+    widths = []
+    for ang in (0.0, 45.0, 90.0, 135.0):
+        c, s = math.cos(math.radians(ang)), math.sin(math.radians(ang))
+        steep = float(np.percentile(np.abs(c * gx + s * gy), 99.5))
+        widths.append(contrast / steep if steep > 1e-6 else float("inf"))
+    return max(widths)
+
+
+def measure_square_px(detection: Detection, square_mm: float) -> float:
+    """Median image distance between corners one square apart on the board (px)."""
+    obj, img = detection.object_points[:, :2].astype(np.float64), detection.image_points.astype(np.float64)
+    d_obj = np.linalg.norm(obj[:, None] - obj[None], axis=2)
+    i, j = np.nonzero(np.abs(d_obj - square_mm) < 1e-3 * square_mm)
+    if len(i) == 0:
+        return float("nan")
+    return float(np.median(np.linalg.norm(img[i] - img[j], axis=1)))
 
 
 def rough_tilt(detection: Detection, image_size: tuple[int, int]) -> tuple[float, float]:
@@ -114,35 +150,35 @@ def rough_tilt(detection: Detection, image_size: tuple[int, int]) -> tuple[float
     return math.degrees(math.atan2(n[1], n[2])), math.degrees(math.atan2(n[0], n[2]))
 
 
-def make_candidate(label: str, frame: int, gray: np.ndarray, detection: Detection) -> Candidate:
+def make_candidate(label: str, frame: int, gray: np.ndarray, detection: Detection, square_mm: float) -> Candidate:
     h, w = gray.shape
     pts = detection.image_points
     span = pts.max(0) - pts.min(0)
     return Candidate(
-        label, frame, detection, measure_sharpness(gray, pts),
+        label, frame, detection, measure_edge_width(gray, pts), measure_square_px(detection, square_mm),
         (float(pts[:, 0].mean() / w), float(pts[:, 1].mean() / h)),
         float(span[0] * span[1] / (w * h)), rough_tilt(detection, (w, h)), cells_of(pts, (w, h)),
     )
 
 
-def _is_duplicate(a: Candidate, b: Candidate, duplicate_px: float) -> bool:
+def _motion(a: Candidate, b: Candidate) -> float:
+    """Mean motion (px) of the corners two views share, or inf if they share fewer than half."""
     common, ia, ib = np.intersect1d(a.detection.ids, b.detection.ids, return_indices=True)
     if len(common) < 0.5 * min(len(a.detection.ids), len(b.detection.ids)):
-        return False
-    moved = np.linalg.norm(a.detection.image_points[ia] - b.detection.image_points[ib], axis=1).mean()
-    return bool(moved < duplicate_px)
+        return float("inf")
+    return float(np.linalg.norm(a.detection.image_points[ia] - b.detection.image_points[ib], axis=1).mean())
 
 
 def select_views(
     candidates: list[Candidate],
     image_size: tuple[int, int],
-    max_views: int = 40,
-    blur_threshold: float = 0.6,
+    max_views: int = 60,
+    max_blur: float = MAX_BLUR,
     duplicate_px: float | None = None,
 ) -> tuple[list[Candidate], list[Dropped]]:
-    """Apply the rules of the module docstring; returns (chosen in frame order, dropped with reasons).
+    """Apply rules 2-4 of the module docstring; returns (chosen in frame order, dropped with reasons).
 
-    ``duplicate_px`` defaults to 1 % of the image diagonal. ``blur_threshold=0`` keeps all views.
+    ``max_blur=0`` keeps views however blurred (the detector already found the board in them).
     """
     if duplicate_px is None:
         duplicate_px = 0.01 * math.hypot(*image_size)
@@ -150,29 +186,45 @@ def select_views(
     if not candidates:
         return [], dropped
 
-    # 1. blur
-    ref = float(np.percentile([c.sharpness for c in candidates], 90))
-    limit = blur_threshold * ref
+    # 2. blur relative to the board's own squares
     pool = []
     for c in candidates:
-        if c.sharpness < limit:
-            dropped.append(Dropped(c.label, c.frame, f"blurred (sharpness {c.sharpness:.2f} < {limit:.2f})"))
+        too_soft = not np.isfinite(c.edge_width_px) or (np.isfinite(c.square_px) and c.blur > max_blur)
+        if max_blur > 0 and too_soft:
+            dropped.append(Dropped(c.label, c.frame, f"blurred (edges {c.edge_width_px:.1f} px wide, "
+                                                     f"{c.blur:.2f} of a {c.square_px:.0f} px square > {max_blur:g})"))
         else:
             pool.append(c)
 
-    # 2. near-duplicates, sharpest first
-    kept: list[Candidate] = []
-    for c in sorted(pool, key=lambda c: -c.sharpness):
-        twin = next((k for k in kept if _is_duplicate(c, k, duplicate_px)), None)
+    # 3. near-duplicates of distinct views (sharpest first)
+    distinct: list[Candidate] = []
+    twins: list[tuple[Candidate, Candidate]] = []
+    for c in sorted(pool, key=lambda c: c.blur):
+        twin = next((k for k in distinct if _motion(c, k) < duplicate_px), None)
         if twin is None:
-            kept.append(c)
+            distinct.append(c)
         else:
-            dropped.append(Dropped(c.label, c.frame, f"near-duplicate of {twin.label}"))
+            twins.append((c, twin))
 
-    # 3. greedy coverage / tilt / diversity, capped
+    # 4. the cap: distinct views first (greedy when too many), then near-duplicates
+    if len(distinct) <= max_views:
+        chosen, remaining = list(distinct), []
+    else:
+        chosen, remaining = _greedy(distinct, image_size, max_views)
+    room = max_views - len(chosen)
+    chosen += [c for c, _ in twins[:room]]
+    for c, twin in twins[room:]:
+        dropped.append(Dropped(c.label, c.frame, f"near-duplicate of {twin.label}"))
+    for c in remaining:
+        dropped.append(Dropped(c.label, c.frame, f"over the cap of {max_views} views (adds least coverage/tilt)"))
+    chosen = sorted(chosen, key=lambda c: c.frame)
+    dropped.sort(key=lambda d: d.frame)
+    return chosen, dropped
+
+
+def _greedy(kept: list[Candidate], image_size: tuple[int, int], max_views: int):
     gx, gy = grid_shape(image_size)
     total_cells = gx * gy
-    best_sharp = max(c.sharpness for c in kept)
     chosen: list[Candidate] = []
     covered: set[int] = set()
     tilt_bins: set[tuple[int, int]] = set()
@@ -188,15 +240,12 @@ def select_views(
             new_tilt = 0.0 if tilt_bin(c) in tilt_bins else 1.0
             spread = (min(float(np.linalg.norm(feats[id(c)] - feats[id(s)])) for s in chosen)
                       if chosen else 1.0)
-            return 2.0 * new_cells + 0.5 * new_tilt + spread + 0.1 * c.sharpness / best_sharp
+            sharp = 1.0 - min(1.0, c.blur / MAX_BLUR)  # 1 sharp ... 0 at the blur limit
+            return 2.0 * new_cells + 0.5 * new_tilt + spread + 0.3 * sharp
 
         best = max(remaining, key=score)
         remaining.remove(best)
         chosen.append(best)
         covered |= best.cells
         tilt_bins.add(tilt_bin(best))
-    for c in remaining:
-        dropped.append(Dropped(c.label, c.frame, f"over the cap of {max_views} views (adds least coverage/tilt)"))
-    chosen.sort(key=lambda c: c.frame)
-    dropped.sort(key=lambda d: d.frame)
-    return chosen, dropped
+    return chosen, remaining

@@ -16,6 +16,7 @@ from capture.commands.actor import actor_app
 from capture.commands.batch import batch_command
 from capture.commands.demo import demo_command
 from capture.commands.fit3d import fit3d_command
+from capture.commands.live import live_command
 from capture.commands.retarget import retarget_command
 from capture.commands.run import run_command
 from capture.commands.synth import synth_command
@@ -36,6 +37,7 @@ app.command("fit3d")(fit3d_command)
 app.command("demo")(demo_command)
 app.command("retarget")(retarget_command)
 app.command("batch")(batch_command)
+app.command("live")(live_command)
 
 
 def main(argv: list[str] | None = None) -> int:

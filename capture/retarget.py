@@ -206,6 +206,20 @@ def retargeted_fits(source: SourceRun, actor_points, part: str) -> Iterator:
                                   reprojection_rms_px=float("nan"), error3d_mm=float("nan"))
 
 
+def b_rig_and_features(b, formats, order: list[int]) -> dict:
+    """B's rig (curves, UsdSkel) with its expressions in A's order (the fits' coefficients are A's) and
+    B's feature lines for the overlay (see :func:`capture.run.take.rig_and_features`)."""
+    from capture.export.rig import FaceRig
+    from capture.run.take import rig_and_features
+
+    extra = rig_and_features(b, formats)
+    if "rig" in extra:
+        r = extra["rig"]
+        extra["rig"] = FaceRig(r.neutral, r.skin_weight, r.expressions[order], tuple(r.names[i] for i in order),
+                               r.jaw_pivot)
+    return extra
+
+
 # ----------------------------------------------------------------------------------------- command
 def retarget_run(cfg: RetargetConfig) -> dict:
     """Retarget a finished run onto actor ``cfg.to``; returns the report (also ``OUT/report.json``)."""
@@ -294,9 +308,10 @@ def retarget_run(cfg: RetargetConfig) -> dict:
                 log[-1]["stage"] = f"retarget {part}"
                 ctx = ExportContext(faces=np.asarray(b.template.faces), fps=src.fps, image_size=src.image_size,
                                     camera=camera, frame_count=len(src.frames), options=options,
-                                    source=f"capture retarget {src.path.name} onto actor {b.name} ({part})")
+                                    source=f"capture retarget {src.path.name} onto actor {b.name} ({part})",
+                                    **b_rig_and_features(b, formats, order))
                 export_stage(fdir, ctx, formats, {"fit": digest(key), "formats": list(formats), "fps": src.fps,
-                                                  "options": options.__dict__}, part_dir,
+                                                  "options": options.to_dict()}, part_dir,
                              images=images if "overlay" in formats else None, log=log, progress=cfg.progress)
                 log[-1]["stage"] = f"export {part}"
             except KeyboardInterrupt:

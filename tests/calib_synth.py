@@ -177,3 +177,44 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float = 10.0) -> Path
         writer.write(cv2.cvtColor(f, cv2.COLOR_GRAY2BGR))
     writer.release()
     return path
+
+
+def operator_poses(board: BoardSpec, K: np.ndarray, image_size, n: int, seed: int = 0,
+                   distance=(300.0, 430.0), tilt_deg=(20.0, 45.0), min_visible: float = 0.5) -> list[Pose]:
+    """Poses as a careful operator records them: the board taken through the image corners, edges and
+    centre in turn (targets cycle through 9 places, with jitter), each view clearly tilted (20-45 deg
+    about a random axis in the board plane, random roll), close enough to fill a good part of the image;
+    partly outside the frame is allowed (at least ``min_visible`` of the corners inside)."""
+    rng = np.random.default_rng(seed)
+    w, h = image_size
+    obj = board.corner_object_points().astype(np.float64)
+    centre = np.array([*np.array(board.size_mm) / 2.0, 0.0])
+    if board.kind == "checker":
+        centre[:2] -= board.square_mm
+    places = [(0.2, 0.2), (0.8, 0.8), (0.8, 0.2), (0.2, 0.8), (0.5, 0.5), (0.5, 0.2), (0.2, 0.5), (0.8, 0.5),
+              (0.5, 0.8)]
+    order = rng.permutation(len(places))
+    Kinv = np.linalg.inv(K)
+    poses: list[Pose] = []
+    tries = 0
+    while len(poses) < n:
+        tries += 1
+        px, py = places[order[len(poses) % len(places)]]
+        target = np.array([px * w, py * h]) + rng.normal(0, 0.03, 2) * (w, h)
+        z = rng.uniform(*distance)
+        pos = z * (Kinv @ np.array([target[0], target[1], 1.0]))
+        axis_ang = rng.uniform(0, 2 * np.pi)
+        tilt = np.radians(rng.uniform(*tilt_deg))
+        axis = np.array([np.cos(axis_ang), np.sin(axis_ang), 0.0])
+        roll = np.radians(rng.uniform(-30, 30))
+        R = cv2.Rodrigues(axis * tilt)[0] @ cv2.Rodrigues(np.array([0, 0, roll]))[0]
+        t = pos - R @ centre
+        cam = obj @ R.T + t
+        if np.any(cam[:, 2] <= 50):
+            continue
+        uv = cam[:, :2] / cam[:, 2:] * (K[0, 0], K[1, 1]) + K[:2, 2]
+        visible = (uv[:, 0] > 8) & (uv[:, 0] < w - 9) & (uv[:, 1] > 8) & (uv[:, 1] < h - 9)
+        if visible.mean() < min_visible and tries < 1000:
+            continue
+        poses.append(Pose(cv2.Rodrigues(R)[0].ravel(), t))
+    return poses

@@ -118,6 +118,43 @@ def test_bench_scale_quick(tmp_path):
     assert all(r["peak_rss_mb"] > 0 for r in res["rows"]) and (tmp_path / "scale.png").is_file()
 
 
+@pytest.mark.slow
+def test_bench_pipeline_quick(tmp_path):
+    from benchmarks.bench_pipeline import main
+
+    res = main(["--quick", "--work", str(tmp_path), "--out", str(tmp_path)])
+    s = res["summary"]
+    assert s["frames"] == 24 and s["run_2_cores_fps"] > 0 and s["detector_only_fps"] > 0
+    assert s["live_max_lag"] <= 5 and s["run_peak_rss_mb"] > 0
+
+
+def test_bench_calib_quick():
+    from benchmarks.bench_calib import main
+
+    res = main(["--quick"])
+    (row,) = res["rows"]
+    assert row["condition"] == "h264" and row["plain_views"] > 0 and row["ours_views"] > 0
+    assert np.isfinite(row["ours_max_px"]) and np.isfinite(row["plain_max_px"])
+
+
+def test_bench_overlay_quick():
+    from benchmarks.bench_overlay import main
+
+    res = main(["--quick"])
+    row = res["rows"][0]
+    assert row["size"] == "640x360" and row["draw_default_ms"] > 0 and row["encode_ms"] > 0
+
+
+@pytest.mark.slow
+def test_bench_batch_cluster_quick(tmp_path):
+    from benchmarks.bench_batch_cluster import main
+
+    res = main(["--quick", "--work", str(tmp_path)])
+    (c,) = res["contention"]
+    assert c["mode"] == "cluster" and c["ratio"] > 0
+    assert [(r["takes"], r["nodes"]) for r in c["alone"] + c["busy"]] == [(2, 2), (2, 2)]
+
+
 def test_blendshapes_2d_recovers_pose_and_weights_in_span():
     """The 2D baseline on exact projections of a blendshape face: the pose and weights come back (scipy's
     bounded least squares with our analytic Jacobian; a wrong Jacobian stalls it far from the truth)."""

@@ -106,7 +106,8 @@ def temp_files(directory: Path) -> list[Path]:
 
 def test_parse_formats():
     assert parse_formats("obj, USD,npz,obj") == ("obj", "usd", "npz")
-    assert set(EXPORTERS) == {"obj", "ply", "usd", "npz", "overlay"}
+    assert set(EXPORTERS) == {"obj", "ply", "usd", "npz", "overlay", "curves"}
+    assert parse_formats("curves,obj") == ("usd", "curves", "obj")   # the rig lives in take.usdc
     with pytest.raises(CaptureError) as err:
         parse_formats("obj,fbx")
     msg = str(err.value)
@@ -211,6 +212,7 @@ def test_npz_keys_shapes_dtypes(tmp_path, take):
                 "head_t_mm": ((T, 3), np.float64), "jaw_R": ((T, 3, 3), np.float64),
                 "jaw_t_mm": ((T, 3), np.float64), "codes": ((T, F_CODE), np.float32),
                 "coefficients_landmarks": ((T, L, E), np.float32), "reprojection_rms_px": ((T,), np.float64),
+                "coefficients_base": ((T, E), np.float32),
                 "status": ((T,), np.int8), "status_names": ((3,), np.dtype("<U7")), "fps": ((), np.float64),
                 "image_size": ((2,), np.int64)}
         assert set(z.files) == set(want)
@@ -222,6 +224,9 @@ def test_npz_keys_shapes_dtypes(tmp_path, take):
         np.testing.assert_allclose(z["head_t_mm"][7], take["fits"][7].head_t)
         assert [str(z["status_names"][s]) for s in z["status"][4:7]] == ["fitted", "skipped", "bridged"]
         assert tuple(z["status_names"]) == STATUSES
+        # fits without a stored base: the landmark mean (the base while F_W is zero)
+        np.testing.assert_allclose(z["coefficients_base"][3], take["fits"][3].coefficients_landmarks.mean(0),
+                                   rtol=1e-5)
     with np.load(tmp_path / "landmarks.npz", allow_pickle=False) as z:
         assert z["points"].shape == (T, L, 2) and z["confidence"].shape == (T, L)
         assert z["face_found"].dtype == bool and not z["face_found"][5] and z["face_found"][4]

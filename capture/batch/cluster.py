@@ -1,18 +1,26 @@
 """The Ray side of ``capture batch``: start or join Ray, run takes as tasks, retry once, count frames.
 
 * :func:`connect` starts an **embedded** local Ray sized to ``workers x threads`` CPUs of this
-  machine, or joins an existing cluster with ``address`` (``ray start --head`` on one machine,
-  ``ray start --address ...`` on the others). When the calling process already has Ray initialised
-  (a script or a test), that Ray is used as it is.
-* Every take is one task asking for ``threads`` CPUs; the task pins torch to as many threads
-  (:func:`capture.batch.take.process_take`). A take split into segments
+  machine (always a new one, even when ``ray start`` runs here), or joins an existing cluster with
+  ``address`` (``ray start --head`` on one machine, ``ray start --address ...`` on the others;
+  ``auto``: ``RAY_ADDRESS`` or the cluster ``ray start`` started here). Joining finds the token of
+  a token-authenticated cluster as Ray's CLI does (:func:`find_token`) and probes the cluster first
+  (:func:`probe_cluster`): a failure is one line naming the address, the token or version skew, and
+  Ray's own messages go to a log file. When the calling process already has Ray initialised (a
+  script or a test), that Ray is used as it is.
+* The workers run with :func:`worker_env` (a job-wide ``runtime_env``): at this process's niceness
+  rather than Ray's 15, and with thread pools of ``threads`` threads that do not spin.
+* Every take is one task asking for ``threads`` CPUs; the task checks the take's storage and pins its
+  threads (:func:`capture.batch.take.guarded`). A take split into segments
   (:mod:`capture.batch.segments`) is one task per segment plus a merge task that Ray starts when
   they are done. At most ``workers`` tasks are in flight.
 * Ray's own task retries are off (``max_retries=0``): a take whose task failed with an unexpected
-  error, or whose worker process died, is submitted once more by :func:`run_tasks`; a take that failed
-  on its input (:class:`~capture.io.errors.CaptureError`) is not (the message says what to fix).
-* Fitted frames flow from the tasks to a tiny counter actor (0 CPUs) that the driver polls for the
-  shoot-wide progress.
+  error, or whose worker process or node died, is submitted once more by :func:`run_tasks` (Ray places
+  it on a node that is alive; it resumes from what its run folder kept); a take that failed on its
+  input (:class:`~capture.io.errors.CaptureError`, or a path its node cannot reach) is not (the message
+  says what to fix).
+* Fitted frames flow from the tasks to a tiny counter actor (0 CPUs, on the driver's node) that the
+  driver polls for the shoot-wide progress.
 
 On a cluster every machine needs this package installed and must see the shoot's paths (videos,
 actors, cameras, the output folder) at the same place: a shared file system.
@@ -20,8 +28,11 @@ actors, cameras, the output folder) at the same place: a shared file system.
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,36 +48,188 @@ class RayInfo:
     """How this batch runs on Ray (goes into the batch report)."""
 
     mode: str                    # "embedded" | "cluster" | "existing"
-    address: str | None
+    address: str | None          # as given (--address); the GCS address joined is ``gcs``
     nodes: int
     cpus: float
-    started: bool                # this command started Ray (and shuts it down)
+    started: bool                # this command started or joined Ray (and shuts it down / leaves)
+    gcs: str | None = None
+    auth: str | None = None      # "token" when this driver authenticates with a token
+
+
+def worker_env(threads: int) -> dict[str, str]:
+    """Environment of the Ray workers that run takes (a job-wide ``runtime_env``).
+
+    * ``RAY_worker_niceness``: Ray starts its workers at niceness 15, so any ordinary (niceness 0) job
+      the kernel schedules with them (the same session's autogroup, or all jobs where autogroups are
+      off) takes the CPU from them (a niceness-15 thread weighs 36 against 1024). The workers run at
+      this driver's own niceness instead (``nice capture batch ...`` still makes them yield), or at
+      ``RAY_worker_niceness`` when the driver's environment sets it (15: Ray's default).
+    * OpenMP, MKL and OpenBLAS pools of ``threads`` threads that sleep rather than spin when idle.
+    """
+    n = str(max(1, int(threads)))
+    nice = os.environ.get("RAY_worker_niceness") or str(os.nice(0))
+    return {"RAY_worker_niceness": nice, "OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n,
+            "OPENBLAS_NUM_THREADS": n, "OMP_WAIT_POLICY": "PASSIVE", "KMP_BLOCKTIME": "0"}
+
+
+@contextlib.contextmanager
+def _quiet_stderr(path: Path):
+    """Send what Ray's C++ core writes to stderr (fd 2) while joining to ``path`` (the log flood of a
+    failed join: one warning per retry)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with open(path, "ab") as fh:
+        os.dup2(fh.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+def find_token() -> str | None:
+    """Turn on token authentication as Ray's CLI does (``ray start``, ``ray.init(address="auto")``):
+    when ``RAY_AUTH_MODE`` is not set and a token exists (``RAY_AUTH_TOKEN``, the file named by
+    ``RAY_AUTH_TOKEN_PATH``, or ``~/.ray/auth_token``). Returns where the token comes from, or None.
+
+    ``ray.init`` with an explicit address does not do this (Ray >= 2.52 turns token authentication on
+    by default in ``ray start --head`` when a token exists), so a driver without ``RAY_AUTH_MODE=token``
+    in its environment could not join such a cluster.
+    """
+    mode = os.environ.get("RAY_AUTH_MODE")
+    if mode is not None and mode.lower() != "token":
+        return None
+    if os.environ.get("RAY_AUTH_TOKEN"):
+        source = "RAY_AUTH_TOKEN"
+    elif os.environ.get("RAY_AUTH_TOKEN_PATH"):
+        source = os.environ["RAY_AUTH_TOKEN_PATH"]
+    elif (Path.home() / ".ray" / "auth_token").is_file():
+        source = str(Path.home() / ".ray" / "auth_token")
+    else:
+        return None
+    if mode is None:
+        try:   # Ray's own switch (sets RAY_AUTH_MODE=token and refreshes its config), quietly
+            from ray._private.authentication.authentication_token_setup import (
+                maybe_enable_token_auth_if_token_available,
+            )
+
+            logging.getLogger("ray._private.authentication.authentication_token_setup").setLevel(logging.ERROR)
+            if not maybe_enable_token_auth_if_token_available(warn_if_disabled=False):
+                return None
+        except ImportError:  # pragma: no cover - a Ray before token authentication
+            return None
+    return source
+
+
+def _join_error(address: str, gcs: str | None, why: str, check: str) -> CaptureError:
+    where = f"--address {address}" + (f" ({gcs})" if gcs and gcs != address else "")
+    return CaptureError(f"cannot join the Ray cluster at {where}: {why}; {check}")
+
+
+_TOKEN_HELP = ("check the token: put the cluster's token (`ray get-auth-token` on the head node prints it) in "
+               "~/.ray/auth_token, or name its file in RAY_AUTH_TOKEN_PATH, or set RAY_AUTH_TOKEN")
+
+
+def probe_cluster(address: str, token: str | None, log: Path) -> str:
+    """Check that a Ray cluster answers at ``address`` and accepts this driver, before ``ray.init``;
+    returns the GCS address (host:port). Raises a one-line :class:`CaptureError` naming what to check:
+    the address (nothing answers), the token (refused or missing), or the versions (driver and
+    cluster run different Ray or Python releases)."""
+    import socket
+
+    import ray
+    from ray._private import services
+
+    try:
+        gcs = services.canonicalize_bootstrap_address(address)
+    except (ValueError, ConnectionError) as exc:
+        raise _join_error(address, None, " ".join(str(exc).split()), "check the address (host:port of the "
+                          "head node, as `ray start --head` prints it)") from None
+    if gcs is None:
+        raise _join_error(address, None, "no running Ray cluster found on this machine (RAY_ADDRESS is not set)",
+                          "start one with `ray start --head`, or give the head node's host:port")
+    host, _, port = gcs.rpartition(":")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
+    except (OSError, ValueError) as exc:
+        raise _join_error(address, gcs, f"nothing answers there ({exc.strerror or exc})",
+                          "check the address (the head node's host:port, as `ray start --head` prints it; "
+                          "`ray status` on the head shows it) and that the head node runs") from None
+    from ray._raylet import GcsClient
+
+    try:
+        with _quiet_stderr(log):
+            client = GcsClient(address=gcs)
+            meta = json.loads(client.internal_kv_get(b"CLUSTER_METADATA", namespace=b"cluster", timeout=10) or b"{}")
+    except ray.exceptions.AuthenticationError:
+        why = ("the cluster refused this driver's token" + (f" (from {token})" if token else "") if token
+               else "the cluster requires a token and none was found")
+        raise _join_error(address, gcs, why, _TOKEN_HELP) from None
+    except Exception as exc:  # noqa: BLE001 - RpcError, timeouts: not a Ray head, or one too busy to answer
+        msg = " ".join(str(exc).split())[:200]
+        raise _join_error(address, gcs, f"no answer from Ray's GCS ({msg})",
+                          "check that the address is the head node's Ray port (default 6379) and that "
+                          "driver and cluster run the same Ray version") from None
+    ours = (ray.__version__, ".".join(map(str, sys.version_info[:2])))
+    theirs = (meta.get("ray_version"), ".".join(str(meta.get("python_version", "")).split(".")[:2]))
+    if meta and ours != theirs:
+        raise _join_error(address, gcs, f"version skew: the cluster runs Ray {theirs[0]} on Python {theirs[1]}, "
+                          f"this driver Ray {ours[0]} on Python {ours[1]}",
+                          "install the cluster's Ray and Python versions here (or start the cluster with ours)")
+    return gcs
 
 
 def connect(address: str | None, workers: int, threads: int) -> RayInfo:
-    """Start the embedded local Ray (``address`` None) or join the cluster at ``address``."""
+    """Start the embedded local Ray (``address`` None) or join the cluster at ``address``.
+
+    ``address`` is a head node's ``host:port`` or ``auto`` (``RAY_ADDRESS``, else the cluster that
+    ``ray start`` started on this machine). The token of a token-authenticated cluster is found as
+    Ray's CLI finds it (:func:`find_token`); the cluster is probed first (:func:`probe_cluster`) so a
+    failure to join is one line naming what to check, and Ray's messages go to a log file.
+    """
     try:
         import ray
     except ImportError:  # pragma: no cover - a dependency
         raise CaptureError("capture batch needs Ray: pip install 'ray>=2.40,<3'") from None
+    env = worker_env(threads)
+    gcs = token = None
     if ray.is_initialized():
         mode, started = "existing", False
     elif address:
+        import tempfile
+
+        log = Path(tempfile.gettempdir()) / f"capture_batch_ray_join_{os.getpid()}.log"
+        logging.getLogger("ray").setLevel(logging.ERROR)   # as ray.init(logging_level=ERROR) will: no warnings
+        token = find_token()
+        # A Ray Client address (ray://) goes to ray.init as it is: its server is not a GCS to probe.
         try:
-            ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
-        except (ConnectionError, RuntimeError, ValueError) as exc:
-            raise CaptureError(f"cannot join the Ray cluster at --address {address}: {' '.join(str(exc).split())}; "
-                               f"check that 'ray start --head' runs there") from None
+            gcs = address if address.startswith("ray://") else probe_cluster(address, token, log)
+        except CaptureError:
+            log.unlink(missing_ok=True)   # the one line says what to check
+            raise
+        try:
+            with _quiet_stderr(log):
+                ray.init(address=gcs, log_to_driver=False, logging_level=logging.ERROR,
+                         runtime_env={"env_vars": env})
+        except Exception as exc:  # noqa: BLE001 - ConnectionError, RuntimeError (versions), auth ...
+            msg = " ".join(str(exc).split())[:300]
+            check = _TOKEN_HELP if "auth" in msg.lower() or "token" in msg.lower() else (
+                "check the address, the token and that driver and cluster run the same Ray and Python versions")
+            raise _join_error(address, gcs, f"{msg} (Ray's messages: {log})", check) from None
+        log.unlink(missing_ok=True)
         mode, started = "cluster", True
     else:
         root = str(Path(__file__).resolve().parents[2])   # workers import capture even without an install
         path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)
-        ray.init(num_cpus=workers * threads, include_dashboard=False, log_to_driver=False,
-                 logging_level=logging.ERROR, runtime_env={"env_vars": {"PYTHONPATH": path}})
+        # address="local": a new Ray even when RAY_ADDRESS is set or `ray start` runs on this machine.
+        ray.init(address="local", num_cpus=workers * threads, include_dashboard=False, log_to_driver=False,
+                 logging_level=logging.ERROR, runtime_env={"env_vars": {**env, "PYTHONPATH": path}})
         mode, started = "embedded", True
     res = ray.cluster_resources()
     nodes = sum(1 for n in ray.nodes() if n.get("Alive"))
-    return RayInfo(mode, address, nodes, float(res.get("CPU", 0.0)), started)
+    auth = "token" if os.environ.get("RAY_AUTH_MODE", "").lower() == "token" else None
+    return RayInfo(mode, address, nodes, float(res.get("CPU", 0.0)), started, gcs, auth)
 
 
 def disconnect(info: RayInfo) -> None:
@@ -164,7 +327,19 @@ def run_tasks(jobs: Sequence[Job], workers: int, threads: int, on_result: Callab
 
     remote = _remotes()
     task = task or remote["task"]
-    counter = remote["counter"].remote()
+    # The counter lives on the driver's node: a worker node that dies must not take the progress with it.
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=True)
+    counter = remote["counter"].options(scheduling_strategy=here).remote()
+    frames: dict[str, int] = {}
+
+    def report_frames() -> None:
+        try:
+            frames.update(ray.get(counter.snapshot.remote(), timeout=10))
+        except ray.exceptions.RayError:
+            pass  # the progress only: keep the last counts
+        on_frames(dict(frames))
     queue = [(job, 1) for job in jobs]
     queue.reverse()
     running: dict[Any, tuple[Job, int]] = {}
@@ -210,10 +385,10 @@ def run_tasks(jobs: Sequence[Job], workers: int, threads: int, on_result: Callab
                 if collect(ref, job, attempt) is None:
                     queue.append((job, attempt + 1))   # next in line
             if on_frames is not None and time.monotonic() - last >= poll:
-                on_frames(ray.get(counter.snapshot.remote()))
+                report_frames()
                 last = time.monotonic()
         if on_frames is not None:
-            on_frames(ray.get(counter.snapshot.remote()))
+            report_frames()
     except KeyboardInterrupt:
         for ref in running:
             for r in [ref, *helpers.get(ref, [])]:
@@ -231,4 +406,5 @@ def run_tasks(jobs: Sequence[Job], workers: int, threads: int, on_result: Callab
                             "attempt": attempt})
         raise
     finally:
-        ray.kill(counter)
+        with contextlib.suppress(Exception):
+            ray.kill(counter)

@@ -6,7 +6,9 @@ batch stopped overnight still has its report so far) and at the end:
 * ``batch_report.json``: the shoot file, how Ray ran it, the totals (takes done / already done /
   failed, frames fitted, frames per second over the whole shoot) and per take its row, attempts and
   run folder (whose ``report.json`` has the per-frame detail);
-* ``batch_summary.csv``: the rows (:data:`CSV_FIELDS`), one per take, for a spreadsheet.
+* ``batch_summary.csv``: the rows (:data:`CSV_FIELDS`), one per take, for a spreadsheet;
+* ``batch_report.html``: the same rows as a page linking each take's ``report.html``
+  (:func:`capture.export.report_html.shoot_html`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from capture.io.atomic import write_json, write_text
 
 REPORT_JSON = "batch_report.json"
 SUMMARY_CSV = "batch_summary.csv"
+REPORT_HTML = "batch_report.html"
 #: Take statuses: ran and finished / skipped because done with the same settings / failed / stopped.
 STATUSES = ("done", "already done", "failed", "interrupted", "pending")
 CSV_FIELDS = ("take", "status", "frames_requested", "frames_fitted", "frames_skipped", "reprojection_mean_px",
@@ -36,7 +39,7 @@ def take_row(name: str, out: Path, result: dict | None, status: str, attempts: i
             "reprojection_median_px": r.get("reprojection_median_px"),
             "reprojection_max_px": r.get("reprojection_max_px"), "seconds": r.get("seconds"),
             "cpu_seconds": r.get("cpu_seconds"),
-            "attempts": attempts, "host": r.get("host"), "out": str(out), "error": r.get("error")}
+            "attempts": attempts, "host": r.get("node") or r.get("host"), "out": str(out), "error": r.get("error")}
 
 
 def totals(rows: Sequence[dict], seconds: float) -> dict:
@@ -70,6 +73,9 @@ def write_batch_report(out_dir: Path, report: dict) -> Path:
     """``batch_report.json`` and ``batch_summary.csv`` in ``out_dir`` (atomically); the JSON's path."""
     out_dir = Path(out_dir)
     write_text(out_dir / SUMMARY_CSV, summary_csv(report["takes"]))
+    from capture.export.report_html import shoot_html
+
+    write_text(out_dir / REPORT_HTML, shoot_html(report, out_dir))
     return write_json(out_dir / REPORT_JSON, report)
 
 

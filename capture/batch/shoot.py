@@ -20,7 +20,8 @@ allowed there (a typo must not silently fall back to a default)::
 
 Take settings (the options of ``capture run`` of the same name): ``actor``, ``camera``,
 ``detector``, ``frames``, ``formats`` (a list or ``"obj,usd"``), ``preset``, ``seed``,
-``iterations``, ``window``, ``device``; a take may also set ``out`` (its own output folder).
+``iterations``, ``window``, ``device``, ``overlay`` (the overlay's layers, a list or
+``"mesh,landmarks"``); a take may also set ``out`` (its own output folder).
 
 Relative paths are resolved against the shoot file's folder (not the current folder), so a shoot
 folder can be moved or shared as a whole. An actor given as a plain name (no ``/``) is
@@ -41,12 +42,13 @@ from pathlib import Path
 from typing import Any
 
 from capture.io.errors import CaptureError
-from capture.run.inputs import DEFAULT_FORMATS, RunConfig, parse_formats
+from capture.run.inputs import DEFAULT_FORMATS, RunConfig, parse_formats, parse_overlay
 
 #: Take settings allowed in ``[defaults]`` and ``[[take]]``, with their TOML types.
 TAKE_SETTINGS: dict[str, tuple[type, ...]] = {
     "actor": (str,), "camera": (str,), "detector": (str,), "frames": (str,), "formats": (str, list),
     "preset": (str,), "seed": (int,), "iterations": (int,), "window": (int,), "device": (str,),
+    "overlay": (str, list),
 }
 TAKE_ONLY: dict[str, tuple[type, ...]] = {"name": (str,), "video": (str,), "out": (str,)}
 SHOOT_KEYS: dict[str, tuple[type, ...]] = {"name": (str,), "out": (str,), "segment_frames": (int,)}
@@ -107,6 +109,14 @@ def _formats(value: Any, where: str) -> tuple[str, ...]:
             raise CaptureError(f"'formats' in {where} must be a list of strings, got {value!r}")
         value = ",".join(value)
     return parse_formats(value, DEFAULT_FORMATS)
+
+
+def _overlay(value: Any, where: str) -> tuple[str, ...]:
+    if isinstance(value, list):
+        if not all(isinstance(v, str) for v in value):
+            raise CaptureError(f"'overlay' in {where} must be a list of strings, got {value!r}")
+        value = ",".join(value) or "none"
+    return parse_overlay(value)
 
 
 def load_shoot(path: str | os.PathLike, out: str | os.PathLike | None = None) -> Shoot:
@@ -175,7 +185,8 @@ def load_shoot(path: str | os.PathLike, out: str | os.PathLike | None = None) ->
             detector=_resolve_path(base, s["detector"]) if "detector" in s else None,
             out=take_out, frames=s.get("frames"), formats=_formats(s.get("formats"), where),
             preset=s.get("preset", "default"), seed=s.get("seed", 0), iterations=s.get("iterations"),
-            device=s.get("device", "cpu"), window=window, overlap=min(6, max(0, window // 5)), progress=False)
+            device=s.get("device", "cpu"), window=window, overlap=min(6, max(0, window // 5)), progress=False,
+            overlay=_overlay(s.get("overlay"), where))
         takes.append(Take(tname, cfg, {"video": str(video), **s}))
     return Shoot(path=path, name=name, out=out_dir, takes=takes, segment_frames=int(shoot.get("segment_frames", 0)),
                  defaults=dict(defaults))

@@ -1,9 +1,11 @@
 """One take of a ``capture batch``: its settings key, whether it is already done, and running it.
 
 This module knows nothing of Ray: :func:`process_take` is what a Ray task calls on a worker (and what
-a test can call directly). It runs :func:`capture.run.take.run_take` (the stages, caches and report of
-``capture run``) with torch pinned to the task's threads, appends what happened to the take's log
-``OUT/batch_take.log`` and returns a plain-data result; it never raises for a bad take.
+a test can call directly). It first checks that this machine can read the take's inputs and write
+its output folder (:func:`check_storage`), then runs :func:`capture.run.take.run_take` (the stages,
+caches and report of ``capture run``) with the worker's threads pinned (:func:`pin_threads`), appends
+what happened to the take's log ``OUT/batch_take.log`` and returns a plain-data result (with the
+machine, Ray node and niceness it ran on); it never raises for a bad take.
 
 A take is *done* when its run folder's ``batch_take.json`` (written by the batch driver) says so for
 the same key and ``run.json`` / ``report.json`` agree. The key hashes the take's settings and
@@ -140,34 +142,105 @@ def process_take(cfg: RunConfig, name: str, attempt: int, threads: int,
     return guarded(cfg, name, attempt, threads, lambda c: result_from_report(run_take(c)), on_frames)
 
 
+def node_name() -> str:
+    """This process's machine and Ray node (the first 8 hex digits of its id) for logs and errors."""
+    host = socket.gethostname()
+    try:
+        import ray
+
+        if ray.is_initialized():
+            return f"{host} (Ray node {ray.get_runtime_context().get_node_id()[:8]})"
+    except Exception:  # noqa: BLE001, S110 - only a label
+        pass
+    return host
+
+
+def check_storage(cfg: RunConfig) -> str | None:
+    """None when this machine can read the take's inputs and write its output folder, else what it cannot
+    (the path and the reason), checked before any work: on a cluster every node must see the shoot's
+    files at the same paths (a shared file system).
+
+    Reads the first byte of the video, the camera and detector files (when given) and the actor's
+    ``actor.json``; creates the output folder and writes and removes a small file in it.
+    """
+    from capture.actor.package import ACTOR_JSON, actor_dir
+
+    inputs = [("video", Path(cfg.video)), ("camera file", cfg.camera), ("detector", cfg.detector),
+              ("actor", actor_dir(str(cfg.actor)) / ACTOR_JSON)]
+    for what, path in inputs:
+        if path is None:
+            continue
+        try:
+            with open(path, "rb") as fh:
+                fh.read(1)
+        except OSError as exc:
+            return f"cannot read the {what} {path} ({exc.strerror or exc})"
+    out = Path(cfg.out)
+    probe = out / f".capture_write_check.{socket.gethostname()}.{os.getpid()}"
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe.write_bytes(b"ok")
+        probe.unlink()
+    except OSError as exc:
+        return f"cannot write the output folder {out} ({exc.strerror or exc})"
+    return None
+
+
+_PINNED: dict[str, int] = {}
+
+
+def pin_threads(threads: int) -> None:
+    """Pin this worker process's thread pools to ``threads`` (once per process and value): torch's
+    intra-op threads (and one inter-op thread), OpenCV's. The detector's onnxruntime session gets
+    ``threads`` intra-op threads that do not spin (:func:`capture.detector.session.open_session`);
+    OpenMP's idle policy is set in the worker's environment (:func:`capture.batch.cluster.worker_env`).
+    """
+    import cv2
+    import torch
+
+    if _PINNED.get("threads") == threads:
+        return
+    if "interop" not in _PINNED:
+        with contextlib.suppress(RuntimeError):   # only before the first parallel work of the process
+            torch.set_num_interop_threads(1)
+        _PINNED["interop"] = 1
+    torch.set_num_threads(int(threads))
+    cv2.setNumThreads(int(threads))
+    _PINNED["threads"] = threads
+
+
 def guarded(cfg: RunConfig, name: str, attempt: int, threads: int, work: Callable[[RunConfig], dict],
             on_frames: Callable[[int], None] | None = None, what: str = "take") -> dict:
-    """``work(cfg)`` on a worker, with torch pinned, logged to ``OUT/batch_take.log``; never raises.
+    """``work(cfg)`` on a worker, with its threads pinned, logged to ``OUT/batch_take.log``; never raises.
 
-    ``threads`` pins torch (and the detector's onnxruntime through ``cfg.threads``) to the task's share
-    of the cores. ``on_frames(n)`` is called as the fit stage advances. Input problems
+    First :func:`check_storage`: a take whose inputs this node cannot read or whose output folder it
+    cannot write fails at once (``retry: False``) with one line naming the path and the node.
+    ``threads`` pins torch, OpenCV and the detector's onnxruntime (through ``cfg.threads``)
+    (:func:`pin_threads`). ``on_frames(n)`` is called as the fit stage advances. Input problems
     (:class:`CaptureError`) come back as ``failed`` with ``retry: False`` (running again cannot help),
     anything else as ``failed`` with ``retry: True`` and the traceback in the log.
     """
     import dataclasses
 
-    import torch
-
     from capture.run.progress import progress_listener
 
     cfg = dataclasses.replace(cfg, threads=int(threads), progress=False)
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
-    log_path = out / TAKE_LOG
     t0, c0 = time.perf_counter(), time.process_time()
-    base = {"take": name, "attempt": attempt, "host": socket.gethostname(), "pid": os.getpid(),
-            "threads": threads, "started": _now()}
-    old_threads = torch.get_num_threads()
-    torch.set_num_threads(int(threads))
+    node = node_name()
+    base = {"take": name, "attempt": attempt, "host": socket.gethostname(), "node": node, "pid": os.getpid(),
+            "threads": threads, "niceness": os.nice(0), "started": _now()}
+    problem = check_storage(cfg)
+    if problem is not None:
+        return {**base, "status": "failed", "retry": False, "seconds": time.perf_counter() - t0, "cpu_seconds": 0.0,
+                "error": f"{problem} on node {node}; every Ray node must see the shoot's inputs and output "
+                         f"folder at the same paths (shared storage)"}
+    log_path = out / TAKE_LOG
+    pin_threads(int(threads))
     throttle = _Throttle(on_frames)
     with open(log_path, "a", encoding="utf-8") as log:
-        log.write(f"--- {base['started']} {what} {name} attempt {attempt} on {base['host']} (pid {base['pid']}, "
-                  f"{threads} thread(s), python {platform.python_version()})\n")
+        log.write(f"--- {base['started']} {what} {name} attempt {attempt} on {node} (pid {base['pid']}, "
+                  f"{threads} thread(s), niceness {base['niceness']}, python {platform.python_version()})\n")
         log.write(f"settings: {cfg.to_dict()}\n")
         log.flush()
         try:
@@ -184,7 +257,6 @@ def guarded(cfg: RunConfig, name: str, attempt: int, threads: int, work: Callabl
             res = {**base, "status": "failed", "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}",
                    "retry": True}
         finally:
-            torch.set_num_threads(old_threads)
             throttle.flush()
         res["seconds"] = time.perf_counter() - t0
         res["cpu_seconds"] = time.process_time() - c0   # this worker process's CPU time (all its threads)

@@ -10,7 +10,6 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from capture.actor.package import actor_dir, list_actors, read_metadata
 from capture.io.errors import CaptureError
 
 actor_app = typer.Typer(help="Learn actors from registered blendshape meshes and inspect them.",
@@ -102,6 +101,8 @@ def edit_command(
 @actor_app.command("list")
 def list_command() -> None:
     """List the actors under $CAPTURE_ACTORS (or ./actors)."""
+    from capture.actor.package import list_actors
+
     actors = list_actors()
     console = Console()
     if not actors:
@@ -124,6 +125,8 @@ def show_command(
 ) -> None:
     """One actor's metadata and quality figures."""
     if as_json:
+        from capture.actor.package import read_metadata
+
         meta = read_metadata(actor)
         meta.get("forehead", {}).pop("vertices", None)
         print(json.dumps(meta, indent=2))
@@ -132,6 +135,8 @@ def show_command(
 
 
 def _show(actor, console: Console) -> None:
+    from capture.actor.package import actor_dir, read_metadata
+
     meta = read_metadata(str(actor))
     q, tr, con = meta["quality"], meta["training"], meta["anatomy_constraints"]
     console.print(f"[bold]{meta['name']}[/]  {meta['n_vertices']} vertices, {len(meta['shape_names'])} shapes "

@@ -7,7 +7,6 @@ from typing import Optional
 
 import typer
 
-from capture.batch.runner import BatchConfig, run_batch
 
 
 def batch_command(
@@ -27,6 +26,8 @@ def batch_command(
     dry_run: bool = typer.Option(False, "--dry-run", help="List the takes and what would run; run nothing."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show the shoot's progress bar."),
 ) -> None:
+    from capture.batch.runner import BatchConfig, run_batch
+
     # The docstring (the command's help) is set below: typer keeps its line breaks.
     report = run_batch(BatchConfig(shoot=shoot, out=out, workers=workers, threads=threads, address=address,
                                    segment_frames=segment_frames, dry_run=dry_run, progress=progress))

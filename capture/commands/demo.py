@@ -6,7 +6,6 @@ from pathlib import Path
 
 import typer
 
-from capture.demo import DemoConfig, run_demo
 from capture.io.errors import CaptureError
 
 
@@ -15,6 +14,8 @@ def demo_command(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
     """The whole pipeline on the bundled sample (actor, synthetic take, capture run, error against the truth)."""
+    from capture.demo import DemoConfig, run_demo
+
     if out.exists() and not out.is_dir():
         raise CaptureError(f"--out {out} is a file; give a folder")
     run_demo(DemoConfig(out=out, progress=progress), say=typer.echo)

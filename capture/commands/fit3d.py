@@ -7,9 +7,6 @@ from typing import Optional
 
 import typer
 
-from capture.run.fit3d import FIT3D_FORMATS, Fit3dConfig, fit3d_take
-from capture.run.inputs import parse_formats
-from capture.run.report import print_summary
 
 
 def fit3d_command(
@@ -31,6 +28,10 @@ def fit3d_command(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
     """Fit an actor to a registered 3D mesh sequence (offline reprocessing of scans)."""
+    from capture.run.fit3d import FIT3D_FORMATS, Fit3dConfig, fit3d_take
+    from capture.run.inputs import parse_formats
+    from capture.run.report import print_summary
+
     cfg = Fit3dConfig(meshes=meshes, actor=actor, out=out, units=units, fps=fps,
                       formats=parse_formats(formats, FIT3D_FORMATS), preset=preset, seed=seed, iterations=iterations,
                       threads=threads, device=device,

@@ -7,7 +7,6 @@ from typing import Optional
 
 import typer
 
-from capture.retarget import RetargetConfig, retarget_run
 
 
 def _split(text: str | None) -> tuple[str, ...] | None:
@@ -34,6 +33,8 @@ def retarget_command(
 ) -> None:
     """Play a run of actor A on actor B: the same head and jaw motion and expression coefficients."""
     from rich.console import Console
+
+    from capture.retarget import RetargetConfig, retarget_run
 
     cfg = RetargetConfig(run_dir=run_dir, to=to, out=out, source_actor=source_actor, formats=_split(formats),
                          parts=_split(parts) or (), mesh_frame=mesh_frame, device=device, threads=threads,

@@ -7,9 +7,6 @@ from typing import Optional
 
 import typer
 
-from capture.run.inputs import RunConfig, parse_formats
-from capture.run.report import print_summary
-from capture.run.take import run_take
 
 
 def run_command(
@@ -22,7 +19,10 @@ def run_command(
     out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default ./runs/<video stem>)."),
     frames: Optional[str] = typer.Option(None, "--frames", help="START:END, END exclusive (default all)."),
     formats: Optional[str] = typer.Option(None, "--formats", help="Exports: comma-separated obj, ply, usd, npz, "
-                                          "overlay (default obj,usd,npz,overlay)."),
+                                          "overlay, curves (default obj,usd,npz,overlay; curves adds usd)."),
+    overlay: Optional[str] = typer.Option(None, "--overlay", help="Overlay layers: comma-separated mesh, wireframe, "
+                                          "contours, landmarks, header, or none (default mesh,contours,landmarks,"
+                                          "header)."),
     preset: str = typer.Option("default", "--preset", help="Fit preset: default or paper."),
     seed: int = typer.Option(0, "--seed", help="Random seed of the fit."),
     iterations: Optional[int] = typer.Option(None, "--iterations", help="Fit iterations of the first window "
@@ -38,9 +38,14 @@ def run_command(
     """Capture a take: detect landmarks, fit the actor, export meshes, USD, parameters and an overlay.
 
     Each stage skips work already done: rerunning is cheap and an interrupted run resumes."""
+    from capture.run.inputs import RunConfig, parse_formats, parse_overlay
+    from capture.run.report import print_summary
+    from capture.run.take import run_take
+
     cfg = RunConfig(video=video, actor=actor, camera=camera, detector=detector, out=out, frames=frames,
                     formats=parse_formats(formats), preset=preset, seed=seed, iterations=iterations, threads=threads,
                     device=device, window=window,
-                    overlap=min(6, max(0, window // 5)), overwrite=overwrite, progress=progress)
+                    overlap=min(6, max(0, window // 5)), overwrite=overwrite, progress=progress,
+                    overlay=parse_overlay(overlay))
     report = run_take(cfg)
     print_summary(report)

@@ -10,8 +10,11 @@ file                                        format        what
 ``take.usdc`` (``take.usda``)               ``usd``       time-sampled mesh, y up, mm, t = frame
 ``params.npz``                              ``npz``       per-frame transforms, codes, coefficients
 ``landmarks.npz``                           ``npz``       detected landmarks, confidence, face found
-``overlay.mp4``                             ``overlay``   landmarks + projected mesh on the frames
+``overlay.mp4``                             ``overlay``   shaded mesh, contours, landmarks, header
+``curves.csv`` (+ rig in ``take.usdc``)     ``curves``    per-frame curves; UsdSkel blend-shape rig
 ==========================================  ============  ==========================================
+
+``curves`` needs the actor's rig (``ExportContext.rig``) and implies ``usd`` (:func:`parse_formats` adds it).
 
 Usage (frames arrive one at a time; memory stays flat in the take's length)::
 
@@ -39,6 +42,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
 from capture.io.errors import CaptureError
+from capture.export.curves import CurvesWriter
 from capture.export.base import (
     MESH_FRAMES,
     STATUSES,
@@ -79,6 +83,8 @@ EXPORTERS: dict[str, Exporter] = {
     "usd": Exporter("usd", "take.usdc with time-sampled points", False, UsdTakeWriter),
     "npz": Exporter("npz", "params.npz and landmarks.npz", False, ParamsWriter),
     "overlay": Exporter("overlay", "overlay.mp4 quality-control video", True, OverlayWriter),
+    "curves": Exporter("curves", "curves.csv (Live Link Face layout) and a UsdSkel rig in take.usdc", False,
+                       CurvesWriter),
 }
 
 #: What ``capture run`` exports when ``--formats`` is not given (DESIGN.md: OBJ by default).
@@ -102,6 +108,8 @@ def parse_formats(text: str | Sequence[str]) -> tuple[str, ...]:
             names.append(name)
     if not names:
         raise CaptureError(f"no export format given; known formats: {', '.join(EXPORTERS)}")
+    if "curves" in names and "usd" not in names:   # the rig lives in take.usdc
+        names.insert(names.index("curves"), "usd")
     return tuple(names)
 
 

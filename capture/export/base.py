@@ -31,6 +31,10 @@ from capture.io.atomic import atomic_path
 
 #: Per-frame fit status, stored in NPZ files as int8 codes (index into this tuple).
 STATUSES = ("fitted", "bridged", "skipped")
+#: Layers the overlay can draw (``capture run --overlay``): the shaded fitted mesh, its triangle edges,
+#: its silhouette and feature contours (lids, lips, brows), the landmarks with their residuals, the header.
+OVERLAY_LAYERS = ("mesh", "wireframe", "contours", "landmarks", "header")
+DEFAULT_OVERLAY = ("mesh", "contours", "landmarks", "header")
 #: Where mesh vertices are expressed: OpenCV camera frame, or the actor's template (head) frame.
 MESH_FRAMES = ("camera", "head")
 
@@ -74,7 +78,8 @@ class ExportOptions:
         usd_ascii: write ``take.usda`` (text) instead of ``take.usdc`` (binary crate).
         usd_save_every: frames between incremental saves of the USD crate (bounds memory).
         overlay_crf: H.264 constant-quality factor of the overlay video (lower is better).
-        overlay_mesh: ``wireframe`` (front-facing triangle edges) or ``dots`` (vertices).
+        overlay_layers: what the overlay draws, any of :data:`OVERLAY_LAYERS` (default
+            :data:`DEFAULT_OVERLAY`: shaded mesh, contours, landmarks, header).
     """
 
     overwrite: bool = False
@@ -82,17 +87,22 @@ class ExportOptions:
     usd_ascii: bool = False
     usd_save_every: int = 32
     overlay_crf: int = 23
-    overlay_mesh: str = "wireframe"
+    overlay_layers: tuple[str, ...] = DEFAULT_OVERLAY
 
     def __post_init__(self) -> None:
         if self.mesh_frame not in MESH_FRAMES:
             raise ValueError(f"mesh_frame must be one of {MESH_FRAMES}, got {self.mesh_frame!r}")
-        if self.overlay_mesh not in ("wireframe", "dots"):
-            raise ValueError(f"overlay_mesh must be 'wireframe' or 'dots', got {self.overlay_mesh!r}")
+        unknown = [x for x in self.overlay_layers if x not in OVERLAY_LAYERS]
+        if unknown or isinstance(self.overlay_layers, str):
+            raise ValueError(f"overlay_layers must be a tuple of {OVERLAY_LAYERS}, got {self.overlay_layers!r}")
         if self.usd_save_every < 1:
             raise ValueError(f"usd_save_every must be >= 1, got {self.usd_save_every}")
         if not 0 <= self.overlay_crf <= 51:
             raise ValueError(f"overlay_crf must be in 0..51, got {self.overlay_crf}")
+
+    def to_dict(self) -> dict:
+        """Plain JSON data (tuples as lists): what an export's key and report record."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
 
 
 @dataclass
@@ -107,6 +117,10 @@ class ExportContext:
         frame_count: number of frames the run will export (a hint, for progress and preallocation).
         options: :class:`ExportOptions`.
         source: one line saying where the take came from (written into file headers).
+        rig: the actor as a blend-shape rig (:class:`capture.export.rig.FaceRig`) for ``curves`` and the
+            UsdSkel animation in ``take.usdc``; None when neither is exported.
+        features: the template's feature lines for the overlay's contours
+            (:class:`capture.export.features.FaceFeatures`); None: the boundary loops of ``faces`` only.
     """
 
     faces: np.ndarray
@@ -116,6 +130,8 @@ class ExportContext:
     frame_count: int = 0
     options: ExportOptions = field(default_factory=ExportOptions)
     source: str = ""
+    rig: Any = None
+    features: Any = None
 
     def __post_init__(self) -> None:
         faces = np.asarray(self.faces)

@@ -42,11 +42,76 @@ def obj_face_block(faces: np.ndarray) -> bytes:
 
 
 def encode_obj(vertices: np.ndarray, face_block: bytes, header: str = "") -> bytes:
-    """OBJ bytes for (V, 3) vertices and a face block from :func:`obj_face_block`."""
-    v = np.asarray(vertices, np.float64)
+    """OBJ bytes for (V, 3) vertices and a face block from :func:`obj_face_block`.
+
+    The ``v`` lines are exactly ``"v %.4f %.4f %.4f\n"`` of the float64 values (see :func:`format_fixed4`).
+    """
+    v = np.asarray(vertices, np.float64).reshape(-1, 3)
     head = "".join(f"# {line}\n" for line in header.splitlines())
-    body = ("v %.4f %.4f %.4f\n" * len(v)) % tuple(v.ravel())
-    return head.encode("utf-8") + body.encode("ascii") + face_block
+    return head.encode("utf-8") + format_fixed4(v, b"v ", b" ", b"\n") + face_block
+
+
+_FILL = 0  # a byte that never occurs in the text: marks padding to be squeezed out
+
+
+def format_fixed4(values: np.ndarray, prefix: bytes, sep: bytes, end: bytes) -> bytes:
+    """Rows of ``values (N, C)`` as ``prefix + sep.join("%.4f" % x) + end`` per row, vectorised.
+
+    Byte-identical to Python's ``%.4f`` (correctly rounded, half to even on the exact binary value,
+    ``-0.0000`` for small negatives): every number is rounded as ``rint(x * 1e4)``, and the rows with a
+    number whose product lies within 1e-6 of a rounding tie (where the float multiplication could round
+    the other way), a non-finite or a huge number are formatted by Python instead. Each number is laid
+    out right-aligned in a fixed-width byte field; the padding is squeezed out. About 10x faster than
+    ``%``-formatting for a 10k-vertex mesh.
+    """
+    x = np.asarray(values, np.float64)
+    if x.ndim != 2:
+        raise ValueError(f"values must be (N, C), got {x.shape}")
+    if end != b"\n" or len(sep) != 1 or _FILL in prefix + sep:
+        raise ValueError("format_fixed4 writes rows of one-byte separated values ending in a newline")
+    n, c = x.shape
+    if n == 0:
+        return b""
+    finite = np.isfinite(x)
+    scaled = np.where(finite, x * 1e4, 0.0)
+    r = np.rint(scaled)
+    odd = ~finite | (np.abs(scaled - np.floor(scaled) - 0.5) < 1e-6) | (np.abs(r) >= 1e15)
+    small = not (np.abs(r) >= 2 ** 31 - 1).any()          # int32 digit arithmetic is twice as fast
+    mag = np.where(odd, 0.0, np.abs(r)).astype(np.int32 if small else np.int64)
+    digits = max(1, len(str(int(mag.max()) // 10000)))
+    width = 1 + digits + 5                        # sign, integer digits, '.', 4 decimals
+    # one row of bytes per line: prefix, then per value its field and one byte of sep (end after the last)
+    line = np.empty((n, len(prefix) + c * (width + 1)), np.uint8)
+    line[:, :len(prefix)] = np.frombuffer(prefix, np.uint8)
+    body = line[:, len(prefix):].reshape(n, c, width + 1)
+    body[:, :, width] = sep[0]
+    body[:, -1, width] = end[0]
+    field = body[:, :, :width]
+    nint = np.ones((n, c), np.int8)               # integer digits of each number
+    m = mag
+    for k in range(4 + digits):                   # digits, units of 1e-4 first (scalar // uses libdivide)
+        q = m // 10
+        col = width - 1 - k - (k >= 4)            # skip the '.' column
+        d = m - q * 10 + 48
+        if k >= 5:                                # integer digits beyond the units: no leading zeros
+            lead = m > 0
+            nint += lead
+            d = np.where(lead, d, _FILL)
+        field[:, :, col] = d
+        m = q
+    field[:, :, width - 5] = ord(".")
+    field[:, :, 0] = _FILL
+    neg = np.signbit(x) & finite & ~odd
+    if neg.any():
+        ri, ci = np.nonzero(neg)
+        field[ri, ci, width - 6 - nint[ri, ci]] = ord("-")
+    out = line[line != _FILL].tobytes()
+    if not odd.any():
+        return out
+    text = out.split(b"\n")[:-1]                 # rare: those rows by Python
+    for i in np.flatnonzero(odd.any(1)):
+        text[i] = prefix + sep.join(b"%.4f" % float(v) for v in x[i])
+    return b"\n".join(text) + b"\n"
 
 
 _PLY_FACE = np.dtype([("n", "u1"), ("idx", "<i4", (3,))])

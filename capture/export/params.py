@@ -18,6 +18,7 @@ jaw_R                      (T, 3, 3)    float64    jaw rotation (in the head fra
 jaw_t_mm                   (T, 3)       float64    jaw translation, mm
 codes                      (T, f)       float32    frame codes z_j
 coefficients_landmarks     (T, L, E)    float32    expression coefficients w_j(c) at the landmarks
+coefficients_base          (T, E)       float32    the per-frame base b_j: w_j(c) = b_j + F_W(z_j, c)
 reprojection_rms_px        (T,)         float64    RMS of fitted vs detected landmarks, pixels
 status                     (T,)         int8       0 fitted, 1 bridged, 2 skipped (see status_names)
 status_names               (3,)         <U7        the legend: ["fitted", "bridged", "skipped"]
@@ -74,6 +75,14 @@ def _stack(rows: list, dtype, tail: tuple[int, ...] | None = None) -> np.ndarray
     return out
 
 
+def _base(base_rows: list, landmark_rows: list) -> np.ndarray:
+    """(T, E) per-frame base coefficients; a frame without them (fits cached before they were stored)
+    gets the mean over the landmarks of its coefficients, which is the base while F_W is zero."""
+    rows = [b if b is not None else (None if w is None else np.asarray(w, np.float64).reshape(-1, np.shape(w)[-1])
+                                     .mean(0)) for b, w in zip(base_rows, landmark_rows)]
+    return _stack(rows, np.float32, (0,))
+
+
 def _opt(fit, name):
     v = getattr(fit, name, None)
     return None if v is None else np.asarray(v)
@@ -88,7 +97,7 @@ class ParamsWriter:
         self.out_dir, self.ctx = Path(out_dir), ctx
         self._rows: dict[str, list] = {k: [] for k in (
             "frame_index", "head_R", "head_t_mm", "jaw_R", "jaw_t_mm", "codes", "coefficients_landmarks",
-            "reprojection_rms_px", "status", "points", "confidence", "face_found", "landmarks_fit")}
+            "coefficients_base", "reprojection_rms_px", "status", "points", "confidence", "face_found", "landmarks_fit")}
         self._any_detection = False
         self._pending: list[PendingFile] = []
 
@@ -101,6 +110,7 @@ class ParamsWriter:
         r["status"].append(status_code(getattr(fit, "status", "fitted")))
         for key, attr in (("head_R", "head_R"), ("head_t_mm", "head_t"), ("jaw_R", "jaw_R"), ("jaw_t_mm", "jaw_t"),
                           ("codes", "code"), ("coefficients_landmarks", "coefficients_landmarks"),
+                          ("coefficients_base", "coefficients_base"),
                           ("landmarks_fit", "landmarks_fit")):
             r[key].append(_opt(fit, attr))
         rms = getattr(fit, "reprojection_rms_px", None)
@@ -129,6 +139,7 @@ class ParamsWriter:
             "jaw_t_mm": _stack(r["jaw_t_mm"], np.float64, (3,)),
             "codes": _stack(r["codes"], np.float32, (0,)),
             "coefficients_landmarks": _stack(r["coefficients_landmarks"], np.float32, (0, 0)),
+            "coefficients_base": _base(r["coefficients_base"], r["coefficients_landmarks"]),
             "reprojection_rms_px": np.asarray(r["reprojection_rms_px"], np.float64),
             "status": np.asarray(r["status"], np.int8),
             "status_names": np.asarray(STATUSES, dtype="<U7"),

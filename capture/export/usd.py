@@ -20,9 +20,11 @@ Scene:
     again at the next meshed frame). ``customLayerData`` records the conventions and the source.
 
 Writing:
-    The crate is created at a temporary sibling of the target and saved every
-    ``ExportOptions.usd_save_every`` frames; a crate save appends the new samples to the file and
-    lets go of them in memory, so memory stays flat however long the take. ``close()`` saves and
+    The crate is created at a temporary sibling of the target. Frames are buffered and written in
+    bulk every ``ExportOptions.usd_save_every`` frames: the block's points are converted to USD axes in
+    one product and authored as time samples straight into the layer inside one ``Sdf.ChangeBlock``,
+    then the crate is saved; a crate save appends the new samples to the file and lets go of them in
+    memory, so memory stays flat however long the take (one block of points is held). ``close()`` saves and
     renames the file over the target (``.usda``: the crate is exported to text first). USD is
     rewritten whole by every export run (cheap next to the fit).
 """
@@ -64,7 +66,7 @@ class UsdTakeWriter:
 
     def __init__(self, out_dir: Path, ctx: ExportContext):
         Sdf, Usd, UsdGeom, Vt = _pxr()
-        self._Usd, self._UsdGeom, self._Vt = Usd, UsdGeom, Vt
+        self._Sdf, self._Usd, self._UsdGeom, self._Vt = Sdf, Usd, UsdGeom, Vt
         self.ctx = ctx
         self.ascii = ctx.options.usd_ascii
         self.target = Path(out_dir) / ("take.usda" if self.ascii else "take.usdc")
@@ -84,8 +86,8 @@ class UsdTakeWriter:
             mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.ravel())))
             mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
             mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-            self._points = mesh.CreatePointsAttr()
-            self._extent = mesh.CreateExtentAttr()
+            self._points_path = mesh.CreatePointsAttr().GetPath()
+            self._extent_path = mesh.CreateExtentAttr().GetPath()
             self._visibility = mesh.CreateVisibilityAttr()
             self._layer.customLayerData = {
                 "capture:units": "mm (metersPerUnit 0.001)",
@@ -95,6 +97,11 @@ class UsdTakeWriter:
                 "capture:source": ctx.source,
             }
             self._stage = stage
+            self._rig = None
+            if getattr(ctx, "rig", None) is not None:   # --formats curves: the UsdSkel rig beside the mesh
+                from capture.export.usd_skel import SkelRigWriter
+
+                self._rig = SkelRigWriter(stage, ctx.rig, ctx.faces, CAMERA_TO_USD)
         except Exception:
             self._release()
             self._crate.discard()
@@ -104,39 +111,58 @@ class UsdTakeWriter:
         self._visible: bool | None = None
         self._vertex_count: int | None = None
         self._since_save = 0
+        self._pending: list[tuple[int, np.ndarray]] = []   # (frame, camera-frame vertices) not yet authored
         self.samples = 0
 
     def write(self, fit: FrameFitLike, image=None, detection=None) -> None:
-        Usd, Vt = self._Usd, self._Vt
         frame = int(fit.frame)
         if self._last is not None and frame <= self._last:
             raise ValueError(f"frames must arrive in increasing order: {frame} after {self._last}")
-        t = Usd.TimeCode(frame)
         v = check_vertices(fit, self.ctx, self._vertex_count)
         visible = v is not None
         if visible != self._visible:
-            self._visibility.Set(self._UsdGeom.Tokens.inherited if visible else self._UsdGeom.Tokens.invisible, t)
+            self._visibility.Set(self._UsdGeom.Tokens.inherited if visible else self._UsdGeom.Tokens.invisible,
+                                 self._Usd.TimeCode(frame))
             self._visible = visible
         if visible:
             self._vertex_count = v.shape[0]
-            p = camera_to_usd(v)
-            self._points.Set(Vt.Vec3fArray.FromNumpy(p), t)
-            self._extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([p.min(0), p.max(0)])), t)
+            self._pending.append((frame, v))
             self.samples += 1
+        if self._rig is not None:
+            self._rig.write(fit)
         if self._first is None:
             self._first = frame
         self._last = frame
         self._since_save += 1
         if self._since_save >= self.ctx.options.usd_save_every:
-            self._layer.Save()
-            self._since_save = 0
+            self._flush()
+
+    def _flush(self) -> None:
+        """Author the buffered frames' points and extents in one change block, then save the crate.
+
+        The points of the block are converted to USD axes in one product; the samples go straight into
+        the layer (``Sdf.Layer.SetTimeSample``), and the save appends them to the file and lets go of them.
+        """
+        Sdf, Vt = self._Sdf, self._Vt
+        if self._pending:
+            frames = [f for f, _ in self._pending]
+            pts = camera_to_usd(np.stack([v for _, v in self._pending]))          # (B, V, 3) float32
+            lo, hi = pts.min(1), pts.max(1)
+            self._pending = []
+            with Sdf.ChangeBlock():
+                for b, f in enumerate(frames):
+                    self._layer.SetTimeSample(self._points_path, float(f), Vt.Vec3fArray.FromNumpy(pts[b]))
+                    self._layer.SetTimeSample(self._extent_path, float(f),
+                                              Vt.Vec3fArray.FromNumpy(np.stack([lo[b], hi[b]])))
+        self._layer.Save()
+        self._since_save = 0
 
     def close(self) -> list[Path]:
         try:
             if self._first is not None:
                 self._stage.SetStartTimeCode(self._first)
                 self._stage.SetEndTimeCode(self._last)
-            self._layer.Save()
+            self._flush()
             if self.ascii:
                 text = PendingFile(self.target)
                 try:
@@ -162,6 +188,9 @@ class UsdTakeWriter:
 
     def _release(self) -> None:
         """Drop every reference to the layer so USD lets go of the (temporary) file."""
-        for name in ("_points", "_extent", "_visibility", "_stage", "_layer"):
+        self._pending = []
+        if getattr(self, "_rig", None) is not None:
+            self._rig.release()
+        for name in ("_visibility", "_rig", "_stage", "_layer"):
             if hasattr(self, name):
                 delattr(self, name)

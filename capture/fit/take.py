@@ -109,6 +109,7 @@ class FrameFit:
     status: str                        # "fitted" | "bridged"
     error3d_mm: float = float("nan")   # fit3d: mean distance to the given mesh over all vertices
     window_start: int = 0              # first frame of the (later) window this frame came from
+    coefficients_base: np.ndarray | None = None  # (E,) the per-frame base: w_j(c) = base + F_W(z_j, c)
 
 
 def resolve_settings(settings: FitSettings | str | None) -> FitSettings:
@@ -337,7 +338,7 @@ def _window_outputs(state: dict, settings: FitSettings, fit_actor: ActorAtPoints
     pose = fit.poses()
     w_lm = fit.coefficients(fit_actor)
     out = {"head_R": pose.head_R, "head_t": pose.head_t, "jaw_R": pose.jaw_R, "jaw_t": pose.jaw_t,
-           "code": fit.codes, "coefficients_landmarks": w_lm}
+           "code": fit.codes, "coefficients_landmarks": w_lm, "coefficients_base": fit.coeff0}
     out = {k: v.detach().cpu().double().numpy() for k, v in out.items()}
     if K is not None:
         lm3 = pose_face(fit_actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t, w_lm)
@@ -431,7 +432,7 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
                            code=f["code"], coefficients_landmarks=f["coefficients_landmarks"],
                            vertices=f["vertices"].astype(np.float32), landmarks_fit=f["landmarks_fit"],
                            reprojection_rms_px=rms, status="bridged" if win.bridged[i] else "fitted",
-                           error3d_mm=err3d, window_start=win.start)
+                           error3d_mm=err3d, window_start=win.start, coefficients_base=f["coefficients_base"])
             done += 1
             if progress is not None:
                 progress(done, total)

@@ -76,7 +76,7 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
     from capture.actor.package import WEIGHTS, load_actor
     from capture.export import ExportContext, ExportOptions
     from capture.fit.take import WindowedFit, fit_meshes
-    from capture.run.take import base_report, finish_report
+    from capture.run.take import base_report, finish_report, html_report, rig_and_features
     from capture.io.video import video_identity
 
     t_start = time.perf_counter()
@@ -114,9 +114,10 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
             stage = "export"
             ctx = ExportContext(faces=np.asarray(actor.template.faces), fps=cfg.fps, image_size=(1, 1), camera=None,
                                 frame_count=len(frames), options=ExportOptions(),
-                                source=f"capture fit3d {Path(cfg.meshes).name}, actor {actor.name}")
+                                source=f"capture fit3d {Path(cfg.meshes).name}, actor {actor.name}",
+                                **rig_and_features(actor, cfg.formats))
             export_stage(fdir, ctx, cfg.formats, {"fit": digest(key), "formats": list(cfg.formats), "fps": cfg.fps,
-                                                  "options": ExportOptions().__dict__},
+                                                  "options": ExportOptions().to_dict()},
                          out, log=log, progress=cfg.progress)
         except KeyboardInterrupt:
             raise Interrupted(f"interrupted during {stage}; finished work is kept in {out}: run the same "
@@ -137,6 +138,7 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
                    "error": {"kind": "3D vertex error", "unit": "mm", **error_stats(errors)},
                    "skipped_frames": skipped, "per_frame": rows, "notes": []})
     finish_report(report, rows, "error3d_mm", out)
+    html_report(out, report, fdir, actor, rows, "error3d_mm", "mm", cfg.fps)
     if len(fits) != len(files):
         raise CaptureError(f"only {len(fits)} of {len(files)} meshes were fitted; see report.json and rerun")
     write_run_json(out, take_id, label, resolved, fingerprints, "done")

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from capture.export.base import DEFAULT_OVERLAY, OVERLAY_LAYERS
 from capture.io.errors import CaptureError
 from capture.run.store import digest, file_sha256
 
@@ -41,12 +42,14 @@ class RunConfig:
     progress: bool = True
     threads: int = 1                    # torch and onnxruntime threads
     segments: tuple | None = None       # capture batch: the fit is stitched from these (start, end) segments
+    overlay: tuple[str, ...] = DEFAULT_OVERLAY  # overlay.mp4 layers (--overlay), see capture.export.base
 
     def to_dict(self) -> dict:
         d = asdict(self)
         for k in ("video", "camera", "detector", "out"):
             d[k] = None if d[k] is None else str(d[k])
         d["formats"] = list(self.formats)
+        d["overlay"] = list(self.overlay)
         return d
 
 
@@ -57,6 +60,25 @@ def parse_formats(text: str | None, default: tuple[str, ...] = DEFAULT_FORMATS) 
     if text is None or not text.strip():
         return tuple(default)
     return parse(text)
+
+
+def parse_overlay(text: str | None) -> tuple[str, ...]:
+    """``"mesh,landmarks"`` -> the overlay's layers (order kept); None: the default; ``none``: only the frame.
+
+    Raises CaptureError (one line listing the known layers) for an unknown name."""
+    if text is None or not text.strip():
+        return DEFAULT_OVERLAY
+    names: list[str] = []
+    for raw in text.split(","):
+        name = raw.strip().lower()
+        if name in ("", "none"):
+            continue
+        if name not in OVERLAY_LAYERS:
+            raise CaptureError(f"unknown overlay layer '{name}' in --overlay; known layers: "
+                               f"{', '.join(OVERLAY_LAYERS)} (or none)")
+        if name not in names:
+            names.append(name)
+    return tuple(names)
 
 
 def parse_frame_range(text: str | None, n_frames: int) -> tuple[int, int]:

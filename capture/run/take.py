@@ -19,7 +19,7 @@ Output folder (``runs/<video stem>`` by default)::
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -115,7 +115,7 @@ def check_complete(requested: list[int], fitted: list[int]) -> None:
 def run_take(cfg: RunConfig) -> dict:
     """Run the whole take; returns the report (also written to ``OUT/report.json``)."""
     from capture.detector import LandmarkTrack
-    from capture.export import ExportContext, ExportOptions
+    from capture.export import ExportContext
     from calib.camera_io import camera_to_dict
     from capture.io.video import VideoReader
 
@@ -134,32 +134,54 @@ def run_take(cfg: RunConfig) -> dict:
 
     log: list[dict] = []
     stage = "detect"
+    options = export_options(cfg)
+    ctx = ExportContext(faces=np.asarray(inputs.actor.template.faces), fps=info.fps,
+                        image_size=(info.width, info.height), camera=cam, frame_count=0,
+                        options=options, source=f"capture run {Path(cfg.video).name}, "
+                                                f"actor {inputs.actor.name}",
+                        **rig_and_features(inputs.actor, cfg.formats))
+
+    def export_key(track) -> dict:
+        return {"fit": fits_key(out, inputs, track), "formats": list(cfg.formats), "fps": info.fps,
+                "video": inputs.video_id, "options": options.to_dict()}
+
+    def detections_of(track) -> dict:
+        return {int(i): Detection(track.points[j], None if track.confidence is None else track.confidence[j],
+                                  bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
+
     with sigterm_as_interrupt():
         try:
-            detect_stage(inputs, out, log=log, progress=cfg.progress)
-            track = LandmarkTrack.load_npz(out / LANDMARKS)
-            if not track.face_found.any():
-                raise CaptureError(f"detector {det.name} found no face in any of the {len(track)} requested frames; "
-                                   f"check the video, --frames and the detector (its spec's crop.first_frame)")
-            stage = "fit"
-            fit_dir = fit_stage(inputs, track, out, log=log, progress=cfg.progress)
-            frames = fit_frames(fit_dir)
-            stage = "export"
-            ctx = ExportContext(faces=np.asarray(inputs.actor.template.faces), fps=info.fps,
-                                image_size=(info.width, info.height), camera=cam, frame_count=len(frames),
-                                options=ExportOptions(), source=f"capture run {Path(cfg.video).name}, "
-                                                                f"actor {inputs.actor.name}")
-            dets = {int(i): Detection(track.points[j], None if track.confidence is None else track.confidence[j],
-                                      bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
+            streamed = None if cfg.segments else _stream_unless_fitted(inputs, out, log)
+            if streamed is not None:   # detect, fit and export ran together (capture.run.stream)
+                stage = "the streamed detect, fit and export"
+                from capture.run.stream import stream_take
 
-            def images(frames):
-                with VideoReader(cfg.video) as reader:
-                    yield from reader.frames(frames)
+                res = stream_take(inputs, out, replace(ctx, frame_count=streamed), cfg.formats, export_key,
+                                  lambda r: Detection(r.points, r.confidence, bool(r.face_found)), cfg.progress)
+                log[:] = res.log
+                track, fit_dir = res.track, res.fit_dir
+                frames = fit_frames(fit_dir)
+                dets = detections_of(track)
+            else:
+                if not log:
+                    detect_stage(inputs, out, log=log, progress=cfg.progress)
+                track = LandmarkTrack.load_npz(out / LANDMARKS)
+                if not track.face_found.any():
+                    raise CaptureError(f"detector {det.name} found no face in any of the {len(track)} requested "
+                                       f"frames; check the video, --frames and the detector (its spec's "
+                                       f"crop.first_frame)")
+                stage = "fit"
+                fit_dir = fit_stage(inputs, track, out, log=log, progress=cfg.progress)
+                frames = fit_frames(fit_dir)
+                stage = "export"
+                dets = detections_of(track)
 
-            key = {"fit": fits_key(out, inputs, track), "formats": list(cfg.formats), "fps": info.fps,
-                   "video": inputs.video_id, "options": ExportOptions().__dict__}
-            export_stage(fit_dir, ctx, cfg.formats, key, out, images=images, detections=dets, log=log,
-                         progress=cfg.progress)
+                def images(frames):
+                    with VideoReader(cfg.video) as reader:
+                        yield from reader.frames(frames)
+
+                export_stage(fit_dir, replace(ctx, frame_count=len(frames)), cfg.formats, export_key(track), out,
+                             images=images, detections=dets, log=log, progress=cfg.progress)
         except KeyboardInterrupt:
             raise _interrupted(out, stage) from None
 
@@ -184,9 +206,85 @@ def run_take(cfg: RunConfig) -> dict:
                   "all_landmarks": error_stats([r["reprojection_rms_all_px"] for r in rows])},
         "skipped_frames": skipped, "per_frame": rows, "notes": inputs.notes})
     finish_report(report, rows, "reprojection_rms_px", out)
+    html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
+                video=Path(cfg.video), camera=cam, image_size=(info.width, info.height))
     check_complete(requested, frames)
     write_run_json(out, inputs.video_id, label, settings, fingerprints, "done")
     return report
+
+
+def _stream_unless_fitted(inputs, out: Path, log: list[dict]) -> int | None:
+    """None when the take's detections are all cached and its fit is done (only the export may be left:
+    the stages run one by one, each skipping what is done; ``log`` gets the detect entry); otherwise the
+    number of requested frames, to be run as a stream (:mod:`capture.run.stream`)."""
+    from capture.detector import LandmarkTrack
+    from capture.run.stages import fit_dir_for, fit_is_done, fit_key
+    from capture.run.stream import plan_detection
+
+    det = inputs.detector
+    cfg = inputs.config
+    query = inputs.landmark_points if det.spec.kind == "query" else None
+    frames = None if cfg.frames is None else range(*inputs.frame_range)
+    plan = plan_detection(cfg.video, det, out, frames, det._check_query(query))
+    if plan.groups:
+        return len(plan.wanted)
+    entry: list[dict] = []
+    detect_stage(inputs, out, log=entry, progress=False)
+    track = LandmarkTrack.load_npz(out / LANDMARKS)
+    key = fit_key(inputs, track)
+    if not track.face_found.any() or fit_is_done(fit_dir_for(out, key), key):
+        log.extend(entry)
+        return None
+    return len(plan.wanted)
+
+
+def export_options(cfg):
+    """The exporters' options of a run (the overlay's layers from ``--overlay``)."""
+    from capture.export import ExportOptions
+
+    layers = getattr(cfg, "overlay", None)
+    return ExportOptions() if layers is None else ExportOptions(overlay_layers=tuple(layers))
+
+
+def rig_and_features(actor, formats) -> dict:
+    """``ExportContext`` fields from the actor: its blend-shape rig when ``curves`` is exported, the
+    template's feature lines (lids, lips, brows) when the overlay is."""
+    if "curves" not in formats and "overlay" not in formats:
+        return {}
+    from capture.export.features import face_features
+    from capture.export.rig import FaceRig
+
+    rig = FaceRig.from_actor(actor)
+    out = {"rig": rig} if "curves" in formats else {}
+    if "overlay" in formats:
+        out["features"] = face_features(np.asarray(actor.template.faces), np.asarray(actor.template.vertices),
+                                        rig.expressions, rig.names)
+    return out
+
+
+def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict], error_key: str, unit: str,
+                fps: float, detections: dict | None = None, video: Path | None = None, camera=None,
+                image_size: tuple[int, int] | None = None) -> Path:
+    """``OUT/report.html`` (:mod:`capture.export.report_html`): the take's plots and its worst frames."""
+    from capture.export.features import face_features
+    from capture.export.overlay_draw import FrameRenderer, Topology
+    from capture.export.report_html import take_series, thumbnails, worst_frames, write_report_html
+    from capture.export.rig import FaceRig
+
+    rig = FaceRig.from_actor(actor)
+    errors = {int(r["frame"]): r.get(error_key) for r in rows}
+    series = take_series(iter_fits(fit_dir), fps, rig.names, errors, unit, detections)
+    thumbs = []
+    if video is not None and camera is not None and image_size is not None:
+        worst = worst_frames(series)
+        faces = np.asarray(actor.template.faces)
+        feats = face_features(faces, np.asarray(actor.template.vertices), rig.expressions, rig.names)
+        renderer = FrameRenderer(Topology.of(faces, feats), camera, image_size, fps,
+                                 ("mesh", "contours", "landmarks"))   # the caption says frame and error
+        want = set(worst)
+        fits = {int(f.frame): f for f in iter_fits(fit_dir) if int(f.frame) in want}
+        thumbs = thumbnails(video, worst, fits, detections or {}, renderer)
+    return write_report_html(out, report, series, thumbs)
 
 
 def fits_key(out: Path, inputs, track) -> str:
@@ -212,6 +310,6 @@ def finish_report(report: dict, rows: list[dict], error_key: str, out: Path) -> 
     mesh_files = [f for f in files if f.startswith("meshes/")]
     others = [f for f in files if not f.startswith("meshes/")]
     report["outputs"] = ([f"meshes/ ({len(mesh_files)} files)"] if mesh_files else []) + others + \
-        ["report.json"]
+        ["report.json", "report.html"]
     report["output_files"] = files
     write_report(out, report)

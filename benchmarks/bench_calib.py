@@ -1,0 +1,282 @@
+"""`capture calibrate` against plain OpenCV on rendered board footage with a known lens.
+
+Every case renders a ChArUco board (tests/calib_synth.py: exact distorted rendering through a known
+camera, supersampled, blurred, noisy) and runs both
+
+- **ours**: `capture calibrate` (calib.pipeline.run_calibrate) with its defaults, and
+- **plain**: `cv2.aruco.CharucoDetector.detectBoard` on every image/frame, every view with >= 6
+  non-collinear corners, `cv2.calibrateCamera` with default flags (k1, k2, p1, p2, k3)
+
+on the same images, and measures each camera's **whole-image model error** against the true lens:
+for a pixel grid (4 px step, edges included) the ray the true camera sees there is projected with
+the estimated camera; max and mean of the pixel distance (calib.uncertainty.projection_difference).
+
+Cases: seeds x views (6, 8, 12, 20) x condition (clean: sigma 0.5 blur + noise 2; blur: sigma 1.8 +
+noise 3; h264: a video, 3 frames per view (the view, a near-duplicate, a motion-blurred frame on the
+way to the next view), libx264 yuv420p crf 23) x lens (weak, strong distortion).
+
+    python benchmarks/bench_calib.py            # 3 seeds x 4 x 3 x 2 = 72 cases, 640x480
+    python benchmarks/bench_calib.py --quick    # 1 case (a 6-view H.264 video)
+    python benchmarks/bench_calib.py --issue    # the issue's 1920x1080 case (9x6 board, 20 views, video)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from calib.board import parse_board  # noqa: E402
+from calib.camera import Camera  # noqa: E402
+from calib.camera_io import read_camera  # noqa: E402
+from calib.pipeline import CalibrateSettings, run_calibrate  # noqa: E402
+from calib.uncertainty import pixel_grid, projection_difference  # noqa: E402
+from capture.io.atomic import write_text  # noqa: E402
+from capture.io.errors import CaptureError  # noqa: E402
+from tests.calib_synth import Renderer, operator_poses, write_images  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results"
+SPEC = "charuco:cols=9,rows=7,square=30,marker=22,dict=DICT_5X5_100"
+ISSUE_SPEC = "charuco:cols=9,rows=6,square=30,marker=22,dict=DICT_5X5_100"
+SIZE = (640, 480)
+K = np.array([[600.0, 0.0, 322.3], [0.0, 604.0, 236.8], [0.0, 0.0, 1.0]])
+LENSES = {
+    "weak": np.array([-0.06, 0.02, 0.0003, -0.0002, 0.0]),
+    "strong": np.array([-0.32, 0.14, 0.0008, -0.0006, -0.03]),
+}
+CONDITIONS = {"clean": dict(blur_sigma=0.5, noise_sigma=2.0), "blur": dict(blur_sigma=1.8, noise_sigma=3.0),
+              "h264": dict(blur_sigma=0.6, noise_sigma=2.0)}
+
+
+VIEWS = (6, 8, 12, 20)
+
+
+@dataclass(frozen=True)
+class Case:
+    seed: int
+    views: int
+    condition: str
+    lens: str
+
+
+def write_h264(path: Path, frames: list[np.ndarray], fps: float = 10.0, crf: int = 23) -> Path:
+    """Grayscale frames to an H.264 (libx264, yuv420p) MP4 through PyAV, as a phone or camera would."""
+    import av
+
+    h, w = frames[0].shape
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+        stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
+        stream.options = {"crf": str(crf), "preset": "fast"}
+        for f in frames:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(cv2.cvtColor(f, cv2.COLOR_GRAY2RGB), "rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path
+
+
+def _between(a, b, t: float):
+    from tests.calib_synth import Pose
+
+    return Pose((1 - t) * np.asarray(a.rvec) + t * np.asarray(b.rvec), (1 - t) * np.asarray(a.tvec) + t * np.asarray(b.tvec))
+
+
+def render_case(case: Case, folder: Path, renderer: Renderer | None = None, spec: str = SPEC,
+                K_true: np.ndarray = K, size=SIZE) -> tuple[Path, list[np.ndarray], Camera]:
+    """Render one case into ``folder``; returns (input path for capture calibrate, the images, truth)."""
+    dist = LENSES[case.lens]
+    renderer = renderer or Renderer(spec, K_true, dist, size)
+    poses = operator_poses(renderer.board, K_true, size, case.views, seed=case.seed)
+    rng = np.random.default_rng(100 + case.seed)
+    look = CONDITIONS[case.condition]
+    truth = Camera(K_true, dist, size)
+    if case.condition != "h264":
+        images = [renderer.render(p, rng=rng, **look) for p in poses]
+        write_images(folder / "views", images)
+        return folder / "views", images, truth
+    frames = []
+    for k, p in enumerate(poses):
+        frames.append(renderer.render(p, rng=rng, **look))
+        frames.append(renderer.render(_between(p, poses[(k + 1) % len(poses)], 0.01), rng=rng, **look))
+        frames.append(renderer.render(_between(p, poses[(k + 1) % len(poses)], 0.5), rng=rng,
+                                      motion_blur_px=6.0, **look))
+    video = write_h264(folder / "take.mp4", frames)
+    cap = cv2.VideoCapture(str(video))
+    decoded = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        decoded.append(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY))
+    cap.release()
+    return video, decoded, truth
+
+
+def plain_opencv(images: list[np.ndarray], spec: str, size) -> tuple[Camera | None, int]:
+    """The baseline: CharucoDetector on every image, calibrateCamera (default flags) on every usable view."""
+    board = parse_board(spec)
+    cv_board = cv2.aruco.CharucoBoard((board.cols, board.rows), board.square_mm, board.marker_mm,
+                                      cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, board.dictionary)))
+    detector = cv2.aruco.CharucoDetector(cv_board)
+    obj, img = [], []
+    for gray in images:
+        corners, ids, _, _ = detector.detectBoard(gray)
+        if ids is None or len(ids) < 6 or cv_board.checkCharucoCornersCollinear(ids):
+            continue
+        o, i = cv_board.matchImagePoints(corners, ids)
+        obj.append(o)
+        img.append(i)
+    if len(obj) < 3:
+        return None, len(obj)
+    rms, Kp, dp, _r, _t = cv2.calibrateCamera(obj, img, size, None, None)
+    return Camera(Kp, dp.reshape(-1)[:5], size, float(rms)), len(obj)
+
+
+def model_error(truth: Camera, est: Camera | None, step: float = 4.0) -> tuple[float, float]:
+    """(max, mean) px over the whole image (module docstring); inf if there is no camera."""
+    if est is None:
+        return float("inf"), float("inf")
+    grid, _ = pixel_grid(truth.image_size, step)
+    d = projection_difference(truth, est, grid)
+    return float(d.max()), float(d.mean())
+
+
+def run_case(case: Case, renderer: Renderer | None = None, spec: str = SPEC, K_true=K, size=SIZE) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        t0 = time.perf_counter()
+        inp, images, truth = render_case(case, folder, renderer, spec, K_true, size)
+        t1 = time.perf_counter()
+        plain, plain_views = plain_opencv(images, spec, size)
+        t2 = time.perf_counter()
+        try:
+            out = run_calibrate(CalibrateSettings(input=inp, board=spec, out=folder / "cam.json", progress=False))
+            ours = read_camera(out.camera)
+            report = json.loads(out.report.read_text())
+        except CaptureError as exc:  # a refusal is recorded, not hidden
+            ours, report = None, {"num_views": 0, "model": "refused", "dropped": [], "warnings": [str(exc)],
+                                  "uncertainty": {"max_px": float("inf")}, "holdout": {"spread_max_px": float("inf")}}
+        t3 = time.perf_counter()
+    ours_max, ours_mean = model_error(truth, ours)
+    plain_max, plain_mean = model_error(truth, plain)
+    return {
+        "seed": case.seed, "views": case.views, "condition": case.condition, "lens": case.lens,
+        "ours_max_px": ours_max, "ours_mean_px": ours_mean, "plain_max_px": plain_max, "plain_mean_px": plain_mean,
+        "ours_views": report["num_views"], "plain_views": plain_views, "model": report["model"],
+        "dropped": [d["reason"] for d in report["dropped"]], "warnings": report["warnings"],
+        "uncertainty_max_px": report["uncertainty"]["max_px"], "spread_max_px": report["holdout"]["spread_max_px"],
+        "render_s": t1 - t0, "plain_s": t2 - t1, "ours_s": t3 - t2,
+    }
+
+
+def cases(quick: bool, seeds: int, views=VIEWS) -> list[Case]:
+    if quick:
+        return [Case(1, 6, "h264", "weak")]
+    return [Case(s, v, c, lens) for lens in LENSES for c in CONDITIONS for v in views for s in range(seeds)]
+
+
+def _print_row(r: dict) -> None:
+    print(f"{r['lens']:6s} {r['condition']:5s} {r['views']:3d} views seed {r['seed']}: ours max {r['ours_max_px']:6.3f} "
+          f"mean {r['ours_mean_px']:.3f} px ({r['ours_views']} views, {r['model']}) | plain max "
+          f"{r['plain_max_px']:6.3f} mean {r['plain_mean_px']:.3f} px ({r['plain_views']} views) | "
+          f"{len(r['warnings'])} warnings | {r['ours_s']:.1f} s", flush=True)
+
+
+def summarise(rows: list[dict]) -> dict:
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(f"{r['lens']} {r['condition']} {r['views']}", []).append(r)
+    out = {}
+    for key, rs in groups.items():
+        out[key] = {
+            "ours_max_px": max(r["ours_max_px"] for r in rs), "plain_max_px": max(r["plain_max_px"] for r in rs),
+            "worst_excess_px": max(r["ours_max_px"] - r["plain_max_px"] for r in rs),
+            "ours_mean_px": float(np.mean([r["ours_mean_px"] for r in rs])),
+            "plain_mean_px": float(np.mean([r["plain_mean_px"] for r in rs])),
+            "ours_views": [r["ours_views"] for r in rs], "plain_views": [r["plain_views"] for r in rs],
+            "models": [r["model"] for r in rs], "warned": sum(bool(r["warnings"]) for r in rs), "runs": len(rs),
+        }
+    return out
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """One line per (lens, condition, views): ours vs plain, max over the image, per seed."""
+    out = ["| lens | input | views | ours max px (per seed) | plain max px (per seed) | ours - plain, worst | "
+           "ours mean px | plain mean px | ours <= 1 px | plain <= 1 px | runs warned | model(s) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["lens"], r["condition"], r["views"]), []).append(r)
+    for (lens, cond, views), rs in groups.items():
+        ours = " / ".join(f"{r['ours_max_px']:.2f}" for r in rs)
+        plain = " / ".join(f"{r['plain_max_px']:.2f}" for r in rs)
+        out.append(
+            f"| {lens} | {cond} | {views} | {ours} | {plain} | "
+            f"{max(r['ours_max_px'] - r['plain_max_px'] for r in rs):+.2f} | "
+            f"{np.mean([r['ours_mean_px'] for r in rs]):.2f} | {np.mean([r['plain_mean_px'] for r in rs]):.2f} | "
+            f"{sum(r['ours_max_px'] <= 1 for r in rs)}/{len(rs)} | {sum(r['plain_max_px'] <= 1 for r in rs)}/{len(rs)} | "
+            f"{sum(bool(r['warnings']) for r in rs)}/{len(rs)} | {', '.join(sorted(set(r['model'] for r in rs)))} |")
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="one case, to check the script runs")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--issue", action="store_true", help="the issue's 1920x1080, 9x6-board case instead")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--table", type=Path, help="only print the table of a results JSON written before")
+    ap.add_argument("--conditions", default=",".join(CONDITIONS))
+    ap.add_argument("--lenses", default="weak,strong")
+    ap.add_argument("--views", default=",".join(map(str, VIEWS)))
+    args = ap.parse_args(argv)
+    for c in [c for c in CONDITIONS if c not in args.conditions.split(",")]:
+        del CONDITIONS[c]
+    lenses = args.lenses.split(",")
+    VIEWS_SEL = tuple(int(v) for v in args.views.split(","))
+    if args.table:
+        res = json.loads(args.table.read_text())
+        print(markdown_table(res["rows"]))
+        return res
+    cv2.setNumThreads(1)
+    rows = []
+    if args.issue:
+        K_hd = np.array([[1500.0, 0.0, 964.0], [0.0, 1500.0, 538.0], [0.0, 0.0, 1.0]])
+        LENSES["issue"] = np.array([-0.20, 0.08, 0.0, 0.0, 0.0])
+        CONDITIONS["h264"] = dict(blur_sigma=0.6, noise_sigma=2.0)
+        for cond in ("clean", "h264"):
+            case = Case(0, 20, cond, "issue")
+            renderer = Renderer(ISSUE_SPEC, K_hd, LENSES["issue"], (1920, 1080), supersample=1, px_per_mm=8.0)
+            r = run_case(case, renderer, ISSUE_SPEC, K_hd, (1920, 1080))
+            rows.append(r)
+            _print_row(r)
+    else:
+        renderers = {lens: Renderer(SPEC, K, d, SIZE) for lens, d in LENSES.items()}
+        for case in [c for c in cases(args.quick, args.seeds, VIEWS_SEL) if c.lens in lenses]:
+            r = run_case(case, renderers[case.lens])
+            rows.append(r)
+            _print_row(r)
+    res = {"rows": rows, "summary": summarise(rows),
+           "worst_excess_px": max(r["ours_max_px"] - r["plain_max_px"] for r in rows),
+           "worst_ours_max_px": max(r["ours_max_px"] for r in rows)}
+    print(markdown_table(rows))
+    print(f"worst: ours max {res['worst_ours_max_px']:.3f} px; ours - plain at most {res['worst_excess_px']:+.3f} px")
+    if not args.quick:
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_text(args.out / ("calib_issue.json" if args.issue else "calib.json"), json.dumps(res, indent=1))
+    return res
+
+
+if __name__ == "__main__":
+    main()

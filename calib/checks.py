@@ -1,0 +1,76 @@
+"""The geometric check of one detection: every corner must agree with its neighbours on the board.
+
+Over a few squares a lens maps the flat board almost exactly by a homography (distortion bends
+straight lines only over larger distances), so each corner's position is predicted from the
+homography fitted to its detected neighbours within ``radius`` squares (``cv2.findHomography``,
+least squares, at least 5 neighbours not on one line). A corner more than ``tolerance`` (0.2) of a
+local square away from its prediction is inconsistent: a mis-identified marker, a corner snapped to
+the wrong saddle, a reflection. Such corners are removed; when more than ``max_bad_fraction`` (25 %)
+of a view's checked corners are inconsistent the whole detection is untrustworthy and the view is
+dropped. Corners with too few neighbours are kept unchecked (board edges, partial views).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calib.detect import Detection
+
+
+def corner_inconsistency(detection: Detection, square_mm: float, radius: int = 2,
+                         excluded: np.ndarray | None = None) -> np.ndarray:
+    """(n,) distance of each corner from its neighbours' prediction, in local squares; NaN if unchecked.
+
+    Corners flagged in ``excluded`` (n,) bool are not used as neighbours (nor checked).
+    """
+    import cv2
+
+    obj = detection.object_points[:, :2].astype(np.float64) / square_mm  # board grid units
+    img = detection.image_points.astype(np.float64)
+    out = np.full(len(obj), np.nan)
+    usable = np.ones(len(obj), bool) if excluded is None else ~excluded
+    cheb = np.abs(obj[:, None, :] - obj[None, :, :]).max(2)
+    for k in np.nonzero(usable)[0]:
+        nb = np.nonzero((cheb[k] <= radius + 1e-6) & (cheb[k] > 1e-6) & usable)[0]
+        if len(nb) < 5:
+            continue
+        src = obj[nb]
+        if np.ptp(src[:, 0]) < 1e-6 or np.ptp(src[:, 1]) < 1e-6:
+            continue
+        H, _ = cv2.findHomography(src, img[nb], 0)
+        if H is None:
+            continue
+        probe = np.array([obj[k], obj[k] + (1.0, 0.0), obj[k] + (0.0, 1.0)]).reshape(-1, 1, 2)
+        pred = cv2.perspectiveTransform(probe, H).reshape(-1, 2)
+        square = 0.5 * (np.linalg.norm(pred[1] - pred[0]) + np.linalg.norm(pred[2] - pred[0]))
+        if square > 1e-6:
+            out[k] = np.linalg.norm(pred[0] - img[k]) / square
+    return out
+
+
+def check_detection(detection: Detection, square_mm: float, min_corners: int, tolerance: float = 0.2,
+                    max_bad_fraction: float = 0.25) -> tuple[Detection | None, str | None]:
+    """(detection without inconsistent corners, None) or (None, reason) (module docstring).
+
+    The worst corner is removed and the others re-checked without it, until all agree: one wrong
+    corner does not condemn its neighbours.
+    """
+    err = corner_inconsistency(detection, square_mm)
+    checked = np.isfinite(err)
+    n_checked = int(checked.sum())
+    bad = np.zeros(len(err), bool)
+    while np.nanmax(np.where(bad, np.nan, err), initial=0.0) > tolerance:
+        bad[int(np.nanargmax(np.where(bad, -np.inf, err)))] = True
+        if bad.sum() > max_bad_fraction * max(1, n_checked):
+            break
+        err = corner_inconsistency(detection, square_mm, excluded=bad)
+    n_bad = int(bad.sum())
+    if n_bad == 0:
+        return detection, None
+    if n_bad > max_bad_fraction * max(1, n_checked):
+        return None, (f"fails the geometric check (over {n_bad - 1} of {n_checked} corners off their "
+                      f"neighbours' grid by more than {tolerance:g} square)")
+    keep = ~bad
+    if int(keep.sum()) < min_corners:
+        return None, f"too few corners after the geometric check ({int(keep.sum())} < {min_corners})"
+    return Detection(detection.image_points[keep], detection.object_points[keep], detection.ids[keep]), None

@@ -1,0 +1,123 @@
+"""How far a calibration can be trusted, and where: the numbers and warnings ``capture calibrate`` reports.
+
+:func:`diagnose` takes a :class:`~calib.calibrate.CalibrationResult` and measures, over a grid of
+pixels covering the whole image (:mod:`calib.uncertainty`):
+
+- the **predicted uncertainty** (1 sigma, px) from the intrinsic covariance,
+- the **hold-out spread**: how far each hold-out fold's camera (calibrated without some views)
+  projects from the full camera, the largest over folds,
+- the **coverage**: used corners per cell and the distance from each image corner to the data.
+
+It warns (and ``--strict`` fails) when the model extrapolates or is not determined:
+
+- fewer than 6 views were used;
+
+- an image corner is farther than ``corner_gap_fraction`` (8 %) of the image diagonal from every
+  used board corner: the lens model there is extrapolated, not measured;
+- the predicted uncertainty exceeds ``tolerance_px / 2`` somewhere (so 2 sigma exceeds the
+  tolerance); the distortion terms whose 1 sigma alone moves the farthest image corner by more than
+  ``tolerance_px / 2`` are named as not determined;
+- the hold-out spread exceeds ``tolerance_px`` somewhere: leaving some views out changes the model
+  there by more than the tolerance (or the check could not be run at all).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib.uncertainty import (CORNER_NAMES, Coverage, Covariance, coverage, intrinsic_covariance, pixel_grid,
+                               pixel_uncertainty, projection_difference, term_effects_px)
+
+CORNER_GAP_FRACTION = 0.08
+
+
+@dataclass(frozen=True)
+class Diagnostics:
+    grid: np.ndarray  # (m, 2) pixels
+    grid_shape: tuple[int, int]  # (nx, ny)
+    uncertainty_px: np.ndarray  # (m,) predicted 1-sigma
+    spread_px: np.ndarray  # (m,) hold-out spread (0 when there were no fold cameras)
+    covariance: Covariance
+    coverage: Coverage
+    term_effects_px: dict[str, float]
+    tolerance_px: float
+    warnings: list[str] = field(default_factory=list)
+    image_size: tuple[int, int] = (0, 0)
+
+    def _at(self, values: np.ndarray) -> list[float]:
+        return [float(v) for v in self.grid[int(np.argmax(values))]]
+
+    @property
+    def uncertainty_max_px(self) -> float:
+        return float(self.uncertainty_px.max())
+
+    @property
+    def uncertainty_median_px(self) -> float:
+        return float(np.median(self.uncertainty_px))
+
+    @property
+    def uncertainty_at(self) -> list[float]:
+        return self._at(self.uncertainty_px)
+
+    @property
+    def spread_max_px(self) -> float:
+        return float(self.spread_px.max())
+
+    @property
+    def spread_at(self) -> list[float]:
+        return self._at(self.spread_px)
+
+
+def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | None = None,
+             corner_gap_fraction: float = CORNER_GAP_FRACTION) -> Diagnostics:
+    """Uncertainty, spread, coverage and warnings of one calibration (module docstring)."""
+    camera = result.camera
+    w, h = camera.image_size
+    step = grid_step_px or max(4.0, float(np.hypot(w, h)) / 100.0)
+    grid, shape = pixel_grid((w, h), step)
+    fpp, far = options.fix_principal_point, options.fix_aspect_ratio
+    cov = intrinsic_covariance(camera, result.model, result.object_points, result.image_points,
+                               result.rvecs, result.tvecs, fpp, far)
+    sigma = pixel_uncertainty(camera, result.model, cov, grid, fpp, far)
+    folds = result.holdout.fold_cameras if result.holdout else []
+    spread = (np.max([projection_difference(camera, c, grid) for c in folds], axis=0)
+              if folds else np.zeros(len(grid)))
+    cov_map = coverage(result.image_points, (w, h))
+    effects = term_effects_px(camera, result.model, cov, fpp, far)
+
+    warnings = []
+    gap_limit = corner_gap_fraction * float(np.hypot(w, h))
+    gaps = {n: g for n, g in cov_map.corner_gaps_px.items() if g > gap_limit}
+    if gaps:
+        warnings.append(
+            "image corner" + ("s " if len(gaps) > 1 else " ") + ", ".join(gaps) + " not covered (nearest board "
+            "corner " + ", ".join(f"{g:.0f}" for g in gaps.values()) + f" px away, limit {gap_limit:.0f} px): the "
+            "lens model is extrapolated there; record the board in the image corners"
+        )
+    if sigma.max() > tolerance_px / 2:
+        at = grid[int(np.argmax(sigma))]
+        loose = [n for n, e in effects.items() if e > tolerance_px / 2]
+        warnings.append(
+            f"predicted uncertainty reaches {sigma.max():.2f} px (1 sigma) at ({at[0]:.0f}, {at[1]:.0f}), above "
+            f"half the {tolerance_px:g} px tolerance"
+            + (f"; distortion term(s) {', '.join(loose)} not determined" if loose else "")
+            + "; record more views there, or fix terms (--model)"
+        )
+    if len(result.views) < 6:
+        warnings.append(f"only {len(result.views)} views: too few to pin the lens model and to check it by "
+                        "leaving views out; record at least 6, better 15-40, over the whole image")
+    if result.holdout is None or not np.isfinite(result.holdout.rms_px):
+        warnings.append("hold-out check failed: OpenCV could not calibrate with views left out, so the model "
+                        "is not checked; record more views")
+    if spread.max() > tolerance_px:
+        at = grid[int(np.argmax(spread))]
+        warnings.append(
+            f"hold-out check: leaving views out moves the model by up to {spread.max():.2f} px at "
+            f"({at[0]:.0f}, {at[1]:.0f}), above the {tolerance_px:g} px tolerance; record more views"
+        )
+    return Diagnostics(grid, shape, sigma, spread, cov, cov_map, effects, tolerance_px, warnings, (w, h))
+
+
+__all__ = ["CORNER_NAMES", "Diagnostics", "diagnose"]

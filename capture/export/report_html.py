@@ -1,0 +1,378 @@
+"""``report.html``: a take at a glance, one self-contained file (no network; figures are embedded PNG).
+
+Written by ``capture run`` and ``capture fit3d`` next to ``report.json`` (every run, whatever
+``--formats``), from the run's own data: the stored frame fits, the detections and ``report.json``.
+
+Contents (top to bottom):
+
+* a summary table: take, actor, camera (flagged when it is the default guess), frames fitted / bridged
+  / without a face, error mean / median / max and the worst frame, the run's settings and time;
+* **reprojection error** per frame (px, RMS over landmarks with confidence >= 0.5; fit3d: the 3D vertex
+  error in mm) with bridged frames and frames without a face shaded;
+* **head pose**: yaw, pitch, roll (degrees, relative to a frontal view; see
+  :func:`capture.export.rig.head_angles_deg`) and translation (mm, camera frame);
+* **jaw**: opening (negative pitch, degrees), yaw, roll and translation length (mm);
+* **expression weights** over time (the per-frame base, one line per shape; a heat map beyond 12);
+* **jitter**: per frame the RMS over vertices of the mesh's second difference in time
+  ``|v[t+1] - 2 v[t] + v[t-1]|`` in the head frame (mm): the head's motion removed, what is left is
+  expression acceleration (a fast jaw moves it too) and shake; a spike on a still face is a pop;
+* **detector confidence**: median and 10th percentile of the landmarks' confidence per frame, and the
+  share of confident landmarks (>= 0.5);
+* **worst frames**: thumbnails of the frames with the largest error, drawn like ``overlay.mp4`` and
+  cropped to the face (video runs only).
+
+The figures are made with matplotlib's Agg backend (no display needed) and embedded as base64 PNG; the
+page has inline CSS and no scripts.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+REPORT_HTML = "report.html"
+WORST_FRAMES = 6
+THUMB_HEIGHT = 240
+CONFIDENT = 0.5
+
+
+@dataclass
+class TakeSeries:
+    """Per-frame series of a take (T frames, E expressions)."""
+
+    frame: np.ndarray            # (T,) video frame index
+    time_s: np.ndarray           # (T,)
+    status: list[str]            # fitted / bridged / skipped
+    error: np.ndarray            # (T,) px (video) or mm (fit3d); NaN when none
+    error_unit: str
+    head_deg: np.ndarray         # (T, 3) yaw, pitch, roll
+    head_t: np.ndarray           # (T, 3) mm
+    jaw_deg: np.ndarray          # (T, 3) yaw, pitch, roll
+    jaw_t: np.ndarray            # (T, 3) mm
+    weights: np.ndarray          # (T, E) base coefficients
+    names: tuple[str, ...]
+    jitter_mm: np.ndarray        # (T,) NaN at the ends
+    face_found: np.ndarray       # (T,) bool
+    conf_median: np.ndarray      # (T,) NaN without confidences
+    conf_p10: np.ndarray         # (T,)
+    conf_share: np.ndarray       # (T,) share of landmarks with confidence >= 0.5
+
+
+def take_series(fits: Iterable[Any], fps: float, names: Sequence[str], errors: dict[int, float | None],
+                error_unit: str, detections: dict[int, Any] | None = None) -> TakeSeries:
+    """Collect the series from frame fits (streamed once; two meshes held for the jitter)."""
+    from capture.export.base import to_head_frame
+    from capture.export.rig import frame_base_weights, head_angles_deg, jaw_angles_deg
+
+    E = len(names)
+    rows: dict[str, list] = {k: [] for k in ("frame", "status", "head_R", "head_t", "jaw_R", "jaw_t", "w", "acc")}
+    prev: list[np.ndarray | None] = [None, None]
+    for f in fits:
+        rows["frame"].append(int(f.frame))
+        rows["status"].append(str(getattr(f, "status", "fitted")))
+        for k, attr in (("head_R", "head_R"), ("head_t", "head_t"), ("jaw_R", "jaw_R"), ("jaw_t", "jaw_t")):
+            v = getattr(f, attr, None)
+            rows[k].append(np.full((3, 3) if k.endswith("R") else 3, np.nan) if v is None else np.asarray(v, float))
+        rows["w"].append(frame_base_weights(f, E))
+        v = getattr(f, "vertices", None)
+        cur = None if v is None else to_head_frame(v, f.head_R, f.head_t).astype(np.float64)
+        a, b = prev
+        rows["acc"].append(None if a is None or b is None or cur is None else
+                           float(np.sqrt(((cur - 2 * b + a) ** 2).sum(1).mean())))
+        prev = [b, cur]
+    T = len(rows["frame"])
+    frame = np.asarray(rows["frame"], np.int64)
+    jitter = np.full(T, np.nan)
+    for j in range(2, T):   # acc of frame j is centred at j - 1
+        if rows["acc"][j] is not None:
+            jitter[j - 1] = rows["acc"][j]
+    face = np.ones(T, bool)
+    med, p10, share = (np.full(T, np.nan) for _ in range(3))
+    for j, i in enumerate(frame):
+        d = None if detections is None else detections.get(int(i))
+        if d is None:
+            continue
+        face[j] = bool(d.face_found)
+        c = getattr(d, "confidence", None)
+        if c is not None and d.face_found:
+            c = np.asarray(c, np.float64)
+            c = c[np.isfinite(c)]
+            if c.size:
+                med[j], p10[j], share[j] = np.median(c), np.percentile(c, 10), (c >= CONFIDENT).mean()
+    err = np.array([np.nan if errors.get(int(i)) is None else float(errors[int(i)]) for i in frame])
+    stack = (lambda k, shape: np.stack(rows[k]) if T else np.zeros((0,) + shape))
+    return TakeSeries(frame=frame, time_s=frame / float(fps), status=rows["status"], error=err,
+                      error_unit=error_unit, head_deg=head_angles_deg(stack("head_R", (3, 3))),
+                      head_t=stack("head_t", (3,)), jaw_deg=jaw_angles_deg(stack("jaw_R", (3, 3))),
+                      jaw_t=stack("jaw_t", (3,)), weights=stack("w", (E,)) if E else np.zeros((T, 0)),
+                      names=tuple(names), jitter_mm=jitter, face_found=face, conf_median=med, conf_p10=p10,
+                      conf_share=share)
+
+
+def worst_frames(s: TakeSeries, k: int = WORST_FRAMES) -> list[int]:
+    """Video frame indices of the ``k`` largest errors, worst first."""
+    ok = np.flatnonzero(np.isfinite(s.error))
+    order = ok[np.argsort(-s.error[ok], kind="stable")][:k]
+    return [int(s.frame[j]) for j in order]
+
+
+# ------------------------------------------------------------------------------------------- figures
+def _png(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _shade_flags(ax, s: TakeSeries) -> None:
+    for j, st in enumerate(s.status):
+        if st != "fitted" or not s.face_found[j]:
+            colour = "#f4a261" if st == "bridged" else "#e76f51"
+            ax.axvspan(s.frame[j] - 0.5, s.frame[j] + 0.5, color=colour, alpha=0.25, lw=0)
+
+
+def figures(s: TakeSeries) -> list[tuple[str, str]]:
+    """``[(title, base64 PNG)]`` of the take's plots (x axis: video frame)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    out = []
+    x = s.frame
+    wide = (9.5, 2.6)
+
+    fig, ax = plt.subplots(figsize=wide, layout="constrained")
+    ax.plot(x, s.error, color="#1d3557", lw=1.2)
+    _shade_flags(ax, s)
+    if np.isfinite(s.error).any():
+        ax.axhline(np.nanmedian(s.error), color="#457b9d", ls="--", lw=0.8, label="median")
+        ax.legend(loc="upper right", fontsize=8)
+    ax.set_ylabel(s.error_unit)
+    ax.set_xlabel("frame  (orange: bridged, red: no face)")
+    ax.grid(alpha=0.3)
+    out.append(("Reprojection error" if s.error_unit == "px" else "3D error", _png(fig)))
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=wide, layout="constrained")
+    for k, (lab, c) in enumerate((("yaw", "#e63946"), ("pitch", "#2a9d8f"), ("roll", "#264653"))):
+        a1.plot(x, s.head_deg[:, k], color=c, lw=1.1, label=lab)
+    a1.set_ylabel("degrees")
+    a1.legend(fontsize=8, ncol=3)
+    for k, (lab, c) in enumerate((("x", "#e63946"), ("y", "#2a9d8f"), ("z - mean", "#264653"))):
+        v = s.head_t[:, k] - (np.nanmean(s.head_t[:, k]) if k == 2 and np.isfinite(s.head_t[:, k]).any() else 0)
+        a2.plot(x, v, color=c, lw=1.1, label=lab)
+    a2.set_ylabel("mm (camera frame)")
+    a2.legend(fontsize=8, ncol=3)
+    for a in (a1, a2):
+        a.grid(alpha=0.3)
+        a.set_xlabel("frame")
+    out.append(("Head pose: rotation and translation", _png(fig)))
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=wide, layout="constrained")
+    a1.plot(x, -s.jaw_deg[:, 1], color="#e76f51", lw=1.3, label="opening (-pitch)")
+    a1.plot(x, s.jaw_deg[:, 0], color="#2a9d8f", lw=1.0, label="yaw")
+    a1.plot(x, s.jaw_deg[:, 2], color="#264653", lw=1.0, label="roll")
+    a1.set_ylabel("degrees")
+    a1.legend(fontsize=8, ncol=3)
+    a2.plot(x, np.linalg.norm(s.jaw_t, axis=1), color="#6d597a", lw=1.1)
+    a2.set_ylabel("jaw translation, mm")
+    for a in (a1, a2):
+        a.grid(alpha=0.3)
+        a.set_xlabel("frame")
+    out.append(("Jaw", _png(fig)))
+
+    if s.weights.shape[1]:
+        E = s.weights.shape[1]
+        if E <= 12:
+            fig, ax = plt.subplots(figsize=(9.5, 3.0), layout="constrained")
+            cmap = plt.get_cmap("tab20")
+            for e in range(E):
+                ax.plot(x, s.weights[:, e], lw=1.0, color=cmap(e % 20), label=s.names[e])
+            ax.legend(fontsize=7, ncol=4, loc="upper right")
+            ax.set_ylabel("weight")
+            ax.set_xlabel("frame")
+            ax.grid(alpha=0.3)
+        else:
+            fig, ax = plt.subplots(figsize=(9.5, 0.9 + 0.17 * E), layout="constrained")
+            lim = max(1e-6, float(np.nanmax(np.abs(s.weights))) if np.isfinite(s.weights).any() else 1.0)
+            im = ax.imshow(s.weights.T, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest",
+                           extent=(x[0] - 0.5, x[-1] + 0.5, E - 0.5, -0.5) if len(x) else None)
+            ax.set_yticks(range(E))
+            ax.set_yticklabels(s.names, fontsize=7)
+            ax.set_xlabel("frame")
+            fig.colorbar(im, ax=ax, label="weight", pad=0.01)
+        out.append(("Expression weights (per-frame base)", _png(fig)))
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=wide, layout="constrained")
+    a1.plot(x, s.jitter_mm, color="#9d0208", lw=1.0)
+    a1.set_ylabel("mm per frame²")
+    a1.set_xlabel("frame")
+    a1.set_title("jitter: RMS second difference of the mesh (head frame)", fontsize=8)
+    if np.isfinite(s.conf_median).any():
+        a2.plot(x, s.conf_median, color="#2a9d8f", lw=1.1, label="median")
+        a2.plot(x, s.conf_p10, color="#e9c46a", lw=1.0, label="10th percentile")
+        a2.plot(x, s.conf_share, color="#264653", lw=1.0, ls="--", label="share >= 0.5")
+        a2.set_ylim(-0.02, 1.02)
+        a2.legend(fontsize=8, ncol=3, loc="lower right")
+    else:
+        a2.text(0.5, 0.5, "the detector gives no confidence", ha="center", va="center", transform=a2.transAxes)
+    _shade_flags(a2, s)
+    a2.set_xlabel("frame")
+    a2.set_title("detector confidence", fontsize=8)
+    for a in (a1, a2):
+        a.grid(alpha=0.3)
+    out.append(("Jitter and detector confidence", _png(fig)))
+    return out
+
+
+# ---------------------------------------------------------------------------------------- thumbnails
+def thumbnails(video: Path, frames: list[int], fits: dict[int, Any], detections: dict[int, Any], renderer,
+               height: int = THUMB_HEIGHT) -> list[tuple[int, str]]:
+    """``[(frame, base64 PNG)]``: the frames drawn by ``renderer`` (an overlay ``FrameRenderer``), cropped
+    to the face (the detected landmarks' box, else the fitted landmarks', with a 25 % margin)."""
+    import cv2
+
+    from capture.io.video import VideoReader
+
+    out = {}
+    with VideoReader(video) as reader:
+        for i, img in reader.frames(sorted(frames)):
+            f = fits.get(int(i))
+            if f is None:
+                continue
+            d = detections.get(int(i))
+            drawn = renderer.render(img, f, d, getattr(f, "vertices", None))
+            pts = np.asarray(d.points if d is not None and d.face_found else getattr(f, "landmarks_fit", np.zeros((0, 2))),
+                             np.float64).reshape(-1, 2)
+            pts = pts[np.isfinite(pts).all(1)]
+            h, w = drawn.shape[:2]
+            if len(pts):
+                lo, hi = pts.min(0), pts.max(0)
+                c, half = 0.5 * (lo + hi), 0.5 * (hi - lo).max() * 1.25 + 8
+                x0, y0 = int(max(0, c[0] - half)), int(max(0, c[1] - half))
+                x1, y1 = int(min(w, c[0] + half)), int(min(h, c[1] + half))
+                crop = drawn[y0:y1, x0:x1] if x1 - x0 > 8 and y1 - y0 > 8 else drawn
+            else:
+                crop = drawn
+            scale = height / crop.shape[0]
+            crop = cv2.resize(crop, (max(1, int(round(crop.shape[1] * scale))), height), interpolation=cv2.INTER_AREA)
+            ok, png = cv2.imencode(".png", crop)
+            if ok:
+                out[int(i)] = base64.b64encode(png.tobytes()).decode("ascii")
+    return [(i, out[i]) for i in frames if i in out]
+
+
+# ------------------------------------------------------------------------------------------- the page
+_CSS = """body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:24px;color:#1d1d1f;max-width:1000px}
+h1{font-size:20px;margin:0 0 4px}h2{font-size:15px;margin:22px 0 6px;border-bottom:1px solid #ddd;padding-bottom:3px}
+table{border-collapse:collapse;font-size:13px}td,th{padding:3px 10px 3px 0;text-align:left;vertical-align:top}
+th{color:#555;font-weight:600}.flag{background:#e76f51;color:#fff;border-radius:3px;padding:1px 5px;font-size:12px}
+.ok{color:#2a9d8f}img{max-width:100%}.thumbs{display:flex;flex-wrap:wrap;gap:10px}
+.thumbs figure{margin:0}.thumbs figcaption{font-size:12px;color:#444}.muted{color:#777;font-size:12px}"""
+
+
+def _fmt(v, unit: str = "", digits: int = 2) -> str:
+    if v is None:
+        return "-"
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return html.escape(str(v))
+    return f"{f:.{digits}f}{(' ' + unit) if unit else ''}" if np.isfinite(f) else "-"
+
+
+def render_html(report: dict, s: TakeSeries, figs: list[tuple[str, str]], thumbs: list[tuple[int, str]]) -> str:
+    """The page (a string) from ``report.json``'s dict, the series, the figures and the thumbnails."""
+    e = report.get("error", {})
+    unit = e.get("unit", s.error_unit)
+    cam = report.get("camera") or {}
+    n_bridged = sum(st == "bridged" for st in s.status)
+    n_noface = int((~s.face_found).sum())
+    title = report.get("video", {}).get("path") or report.get("meshes", {}).get("folder") or report.get("out_dir", "")
+    rows = [("take", html.escape(Path(str(title)).name) + f" <span class=muted>{html.escape(str(title))}</span>"),
+            ("command", html.escape(str(report.get("command", "")))),
+            ("actor", html.escape(str(report.get("actor", {}).get("name", "-"))))]
+    if cam:
+        flag = " <span class=flag>DEFAULT CAMERA (60 deg guess)</span>" if cam.get("is_default") else ""
+        rows.append(("camera", html.escape(str(cam.get("source", cam.get("provenance", "")))) + flag))
+    fr = report.get("frames", {})
+    rows.append(("frames", f"{fr.get('fitted', len(s.frame))} fitted of {fr.get('requested', len(s.frame))}; "
+                           f"{n_bridged} bridged; {n_noface} without a face; {fr.get('skipped', 0)} skipped"))
+    rows.append(("error", f"mean {_fmt(e.get('mean'), unit)}, median {_fmt(e.get('median'), unit)}, "
+                          f"max {_fmt(e.get('max'), unit)} (worst frame {e.get('worst_frame', '-')})"
+                          + (f"; over {html.escape(str(e.get('landmarks')))}" if e.get("landmarks") else "")))
+    if np.isfinite(s.jitter_mm).any():
+        rows.append(("jitter", f"median {np.nanmedian(s.jitter_mm):.3f} mm, max {np.nanmax(s.jitter_mm):.3f} mm "
+                               f"(frame {int(s.frame[np.nanargmax(s.jitter_mm)])})"))
+    rows.append(("time", f"{_fmt(report.get('seconds_total'), 's', 1)}"))
+    notes = report.get("notes") or []
+    parts = [f"<!doctype html><html lang=en><head><meta charset=utf-8><title>capture report: "
+             f"{html.escape(Path(str(title)).name)}</title><style>{_CSS}</style></head><body>",
+             f"<h1>{html.escape(Path(str(title)).name)}</h1>",
+             "<table>" + "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows) + "</table>"]
+    if notes:
+        parts.append("<ul>" + "".join(f"<li>{html.escape(str(n))}</li>" for n in notes) + "</ul>")
+    for t, png in figs:
+        parts.append(f"<h2>{html.escape(t)}</h2><img alt='{html.escape(t)}' src='data:image/png;base64,{png}'>")
+    if thumbs:
+        parts.append("<h2>Worst frames</h2><div class=thumbs>")
+        err = dict(zip(s.frame.tolist(), s.error.tolist()))
+        for i, png in thumbs:
+            parts.append(f"<figure><img alt='frame {i}' src='data:image/png;base64,{png}'><figcaption>frame {i}: "
+                         f"{_fmt(err.get(i), unit)}</figcaption></figure>")
+        parts.append("</div>")
+    parts.append(f"<p class=muted>capture {html.escape(str(report.get('versions', {}).get('capture', '')))}; "
+                 f"report.json has every number of this page.</p></body></html>")
+    return "\n".join(parts)
+
+
+def write_report_html(out_dir: Path, report: dict, series: TakeSeries, thumbs: list[tuple[int, str]]) -> Path:
+    """Write ``out_dir/report.html`` atomically; returns its path."""
+    from capture.io.atomic import write_text
+
+    return write_text(Path(out_dir) / REPORT_HTML, render_html(report, series, figures(series), thumbs))
+
+
+# -------------------------------------------------------------------------------------- a whole shoot
+def shoot_html(report: dict, out_dir: Path) -> str:
+    """The shoot-level page of ``capture batch`` (``batch_report.html``): the totals and one row per take,
+    linking each take's ``report.html`` (relative links, so the folder can be moved or served as it is)."""
+    out_dir = Path(out_dir)
+    tot = report.get("totals", {})
+    head = ("take", "status", "frames", "error mean px", "median", "max", "time", "")
+    rows = []
+    for r in report.get("takes", []):
+        take_dir = Path(str(r.get("out", "")))
+        page = take_dir / REPORT_HTML
+        try:
+            rel = page.resolve().relative_to(out_dir.resolve()).as_posix()
+        except ValueError:
+            rel = page.resolve().as_uri()
+        link = f"<a href='{html.escape(rel)}'>report</a>" if page.is_file() else "<span class=muted>no report</span>"
+        frames = "-" if r.get("frames_requested") is None else f"{r.get('frames_fitted')}/{r.get('frames_requested')}"
+        status = html.escape(str(r.get("status", "")))
+        if r.get("status") == "failed":
+            status = f"<span class=flag>failed</span> {html.escape(str(r.get('error') or ''))}"
+        secs = r.get("seconds")
+        rows.append([html.escape(str(r.get("take", ""))), status, frames, _fmt(r.get("reprojection_mean_px")),
+                     _fmt(r.get("reprojection_median_px")), _fmt(r.get("reprojection_max_px")),
+                     "-" if secs is None else f"{float(secs):.0f} s", link])
+    name = html.escape(str(report.get("name", "shoot")))
+    summary = (f"{tot.get('takes', len(rows))} takes: {tot.get('done', 0)} done, {tot.get('already_done', 0)} already "
+               f"done, {tot.get('failed', 0)} failed; {tot.get('frames_fitted', 0)} frames fitted")
+    return "\n".join([
+        f"<!doctype html><html lang=en><head><meta charset=utf-8><title>capture batch: {name}</title>"
+        f"<style>{_CSS}</style></head><body><h1>capture batch: {name}</h1>",
+        f"<p>{html.escape(summary)}. <span class=muted>Shoot file {html.escape(str(report.get('shoot', '')))}; "
+        f"batch_report.json and batch_summary.csv hold the same rows.</span></p>",
+        "<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>"
+        + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>" for row in rows) + "</table>",
+        "</body></html>"])

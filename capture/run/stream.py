@@ -1,0 +1,470 @@
+"""``capture run`` as a stream: decode -> detect -> fit -> export at the same time, through bounded queues.
+
+Stages and where they run (threads of one process; the heavy work of each releases the GIL: FFmpeg
+decoding, onnxruntime, torch, file writes)::
+
+    decode thread   VideoReader: the frames of the detection segments not in the cache     -> (segment group, frames)
+    detect thread   cached segments read, the others detected (Detector.run_lanes)         -> FrameLandmarks per frame
+    fit thread      capture.fit.stream.fit_take_stream: each window solved as soon as      -> FrameFit per frame
+                    its frames (and the initial poses they depend on) are there
+    main thread     the exporters (and a second VideoReader when the overlay needs images) -> files;
+                    the progress bar ("fit", as capture batch follows it) counts the frames written
+
+Queues hold at most :data:`QUEUE_FRAMES` frames; the decoder works at most one group of detection
+segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector and frames are
+allocated off the heap (:func:`_frames_off_heap`), so memory stays flat in the take's length (about
+1.1 GB peak at 1920x1080, ``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
+event: an error or an interrupt in any stage stops all of them (a fit window being solved finishes
+first, and is kept), and the error is raised in the main thread (where SIGTERM and Ctrl-C arrive).
+
+The results are those of the stage-by-stage run (:mod:`capture.run.stages`), to the bit: detection
+segments are the same independent tracking units, written to the same cache; the fit is the same
+windows with the same chained keys (its window cache is resumable); the exports get the same frames.
+What differs is where the fit is kept while it runs: its key hashes the whole take's landmarks, which
+are not known until the end, so the windows go to ``fit/stream-<key of everything but the
+landmarks>/`` and the folder is renamed to ``fit/<key>/`` (with ``done.json``) when the take ends.
+``report.json`` lists per stage its busy seconds and the wall time until it finished.
+"""
+
+from __future__ import annotations
+
+import queue
+import shutil
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from capture.io.atomic import write_json
+from capture.io.errors import CaptureError
+from capture.run.progress import StageProgress
+from capture.run.store import array_digest, digest, read_json, save_frame_fits
+
+QUEUE_FRAMES = 64              # landmarks / fits waiting between stages
+DECODE_BUDGET_BYTES = 256 << 20  # decoded frames of one group of detection segments
+_END = object()
+
+
+class _Stopped(Exception):
+    """Raised in a stage when another stage failed or the run was interrupted."""
+
+
+class Pipe:
+    """A bounded queue whose ``put``/``get`` give up when the pipeline's stop event is set."""
+
+    def __init__(self, stop: threading.Event, size: int):
+        self.q: queue.Queue = queue.Queue(maxsize=size)
+        self.stop = stop
+        self.wait_s = 0.0    # time the consumer spent waiting for items
+
+    def put(self, item: Any) -> None:
+        while True:
+            if self.stop.is_set():
+                raise _Stopped
+            try:
+                self.q.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def get(self) -> Any:
+        t0 = time.perf_counter()
+        try:
+            while True:
+                if self.stop.is_set():
+                    raise _Stopped
+                try:
+                    return self.q.get(timeout=0.1)
+                except queue.Empty:
+                    continue
+        finally:
+            self.wait_s += time.perf_counter() - t0
+
+    def __iter__(self):
+        while True:
+            item = self.get()
+            if item is _END:
+                return
+            yield item
+
+
+@dataclass
+class StageClock:
+    """Busy seconds of a stage and when it finished (seconds since the pipeline started)."""
+
+    busy: float = 0.0
+    finished: float | None = None
+    extra: dict = field(default_factory=dict)
+
+
+class Pipeline:
+    """Threads that run stage functions; the first error stops them all and is re-raised by :meth:`join`."""
+
+    def __init__(self):
+        self.stop = threading.Event()
+        self.error: BaseException | None = None
+        self.threads: list[threading.Thread] = []
+        self.t0 = time.perf_counter()
+
+    def pipe(self, size: int = QUEUE_FRAMES) -> Pipe:
+        return Pipe(self.stop, size)
+
+    def start(self, name: str, fn: Callable[[], None], clock: StageClock) -> None:
+        def body():
+            try:
+                fn()
+            except _Stopped:
+                pass
+            except BaseException as exc:   # handed to the main thread
+                if self.error is None:
+                    self.error = exc
+                self.stop.set()
+            finally:
+                clock.finished = time.perf_counter() - self.t0
+
+        t = threading.Thread(target=body, name=f"capture-{name}", daemon=True)
+        self.threads.append(t)
+        t.start()
+
+    def check(self) -> None:
+        if self.error is not None:
+            raise self.error
+
+    def close(self) -> None:
+        """Stop every stage and wait for it (after an error or an interrupt, or at the end)."""
+        self.stop.set()
+        for t in self.threads:
+            t.join()
+
+
+# ------------------------------------------------------------------------------------ detection plan
+@dataclass
+class DetectPlan:
+    """Which detection segments are cached and which must be detected (as :func:`detect_video`)."""
+
+    starts: list[int]
+    seg_len: dict[int, int]
+    cached: dict[int, list]          # segment start -> FrameLandmarks (read from the cache)
+    groups: list[list[int]]          # missing segments, grouped to run side by side
+    wanted: list[int]
+    cache_dir: Path | None
+    info: Any
+
+
+def plan_detection(video: Path, detector, out_dir: Path, frames, query) -> DetectPlan:
+    import hashlib
+    import json
+
+    from capture.detector.pipeline import _parse_frames, _read_segment, cache_key
+    from capture.io.video import VideoReader, video_identity
+
+    with VideoReader(video) as reader:
+        info = reader.info
+    wanted = _parse_frames(frames, info.frame_count)
+    seg = detector.options.segment
+    starts = sorted({i - i % seg for i in wanted})
+    key = cache_key(detector, video_identity(video), query)
+    cdir = Path(out_dir) / "detections" / hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+    if not (cdir / "key.json").is_file():
+        write_json(cdir / "key.json", {**key, "video_path": str(video)})
+    cached = {}
+    for s in starts:
+        p = cdir / f"seg_{s:08d}.npz"
+        if p.is_file():
+            r = _read_segment(p, detector.name, detector.count)
+            if r is not None:
+                cached[s] = r
+    missing = [s for s in starts if s not in cached]
+    seg_len = {s: min(seg, info.frame_count - s) for s in starts}
+    lanes = max(1, min(detector.batch_size, DECODE_BUDGET_BYTES // max(1, info.width * info.height * 3 * seg)))
+    groups = [missing[g:g + lanes] for g in range(0, len(missing), lanes)]
+    return DetectPlan(starts, seg_len, cached, groups, wanted, cdir, info)
+
+
+def _frame_weights(points: np.ndarray, confidence: np.ndarray | None) -> np.ndarray:
+    """One frame's row of :func:`capture.run.stages.landmark_weights`."""
+    w = np.ones(points.shape[0]) if confidence is None else np.asarray(confidence, np.float64)
+    ok = np.isfinite(points).all(-1) & np.isfinite(w)
+    return np.where(ok, np.clip(w, 0.0, 1.0), 0.0)
+
+
+# ------------------------------------------------------------------------------------------ the run
+@dataclass
+class StreamResult:
+    track: Any                 # LandmarkTrack of the requested frames
+    fit_dir: Path
+    log: list
+
+
+def stream_take(inputs, out: Path, export_context, formats, export_key: Callable[[Any], dict],
+                detection_factory: Callable[[Any], Any], progress: bool = True) -> StreamResult:
+    """Run detect, fit and export of a take together (see the module docstring).
+
+    ``export_key(track)`` gives the export's key once the take's landmarks are known;
+    ``detection_factory(frame_landmarks)`` gives what the exporters read beside a fit.
+    Returns the track, the finished fit folder and the stage log (detect, fit, export).
+    """
+    import torch
+
+    from capture.detector.pipeline import _segment_path, _write_segment, stack_frames
+    from capture.detector.runtime import Lane, TrackState
+    from capture.export import EXPORTERS, open_exporters
+    from capture.fit.stream import fit_take_stream
+    from capture.io.video import VideoReader
+    from capture.run.stages import DONE_JSON, EXPORT_JSON, FIT_CHUNK, LANDMARKS, fit_dir_for, fit_key, windowed_fit
+
+    cfg = inputs.config
+    det = inputs.detector
+    out = Path(out)
+    query = inputs.landmark_points if det.spec.kind == "query" else None
+    q = det._check_query(query)
+    start, end = inputs.frame_range
+    frames = None if cfg.frames is None else range(start, end)
+    plan = plan_detection(cfg.video, det, out, frames, q)
+    wanted = set(plan.wanted)
+    n_frames = len(plan.wanted)
+
+    _frames_off_heap()
+    pipe_line = Pipeline()
+    decoded = pipe_line.pipe(1)
+    landmarks = pipe_line.pipe(QUEUE_FRAMES)
+    fits = pipe_line.pipe(QUEUE_FRAMES)
+    clocks = {k: StageClock() for k in ("decode", "detect", "fit", "export")}
+    results: list = []                          # FrameLandmarks of the requested frames, in order
+    stats = {"detected": 0, "cached": sum(len(v) for v in plan.cached.values())}
+
+    # fit folder while the take runs: keyed by everything but the landmarks
+    stream_key = {**fit_key(inputs, _EmptyTrack()), "landmarks_sha256": None,
+                  "detections": {"cache": plan.cache_dir.name, "frames": [plan.wanted[0], plan.wanted[-1] + 1]
+                                 if plan.wanted else []}}
+    stage_dir = out / "fit" / f"stream-{digest(stream_key)[:16]}"
+    stage_dir.mkdir(parents=True, exist_ok=True)
+
+    def decode():
+        with VideoReader(cfg.video) as reader:
+            for group in plan.groups:
+                while not decoded.q.empty():    # one group ahead of the detector, not two: memory
+                    if pipe_line.stop.is_set():
+                        raise _Stopped
+                    time.sleep(0.005)
+                t0 = time.perf_counter()
+                idx = [i for s in group for i in range(s, s + plan.seg_len[s])]
+                buf = dict(reader.frames(idx))
+                clocks["decode"].busy += time.perf_counter() - t0
+                decoded.put((group, buf))
+        decoded.put(_END)
+
+    def detect():
+        groups = iter(decoded)
+        done: dict[int, list] = {}
+        for s in plan.starts:
+            if s in plan.cached:
+                seg_results = plan.cached.pop(s)
+            else:
+                if s not in done:
+                    group, buf = next(groups)
+                    t0 = time.perf_counter()
+                    lanes = []
+                    for g in group:
+                        ids = [i for i in range(g, g + plan.seg_len[g]) if i in buf]
+                        lanes.append(Lane(ids, [buf[i] for i in ids], TrackState()))
+                    det.run_lanes(lanes, q, batch_size=len(group))
+                    del buf
+                    for lane in lanes:
+                        lane.frames = []        # let go of the decoded frames before waiting for the next group
+                    for g, lane in zip(group, lanes):
+                        done[g] = lane.results
+                        stats["detected"] += len(lane.results)
+                        _write_segment(_segment_path(plan.cache_dir, g), stack_frames(det.name, lane.results,
+                                                                                      det.count))
+                    clocks["detect"].busy += time.perf_counter() - t0
+                seg_results = done.pop(s)
+            for r in seg_results:
+                if r.frame_index in wanted:
+                    results.append(r)
+                    landmarks.put(r)
+        if frames is not None and len(results) < n_frames:   # as detect_video: the header promised more
+            have = {int(r.frame_index) for r in results}
+            lost = next(i for i in plan.wanted if i not in have)
+            raise CaptureError(f"video {Path(cfg.video).name} ends before frame {lost} (its header says "
+                               f"{plan.info.frame_count} frames); request frames below {lost}")
+        landmarks.put(_END)
+
+    def fit():
+        torch.set_num_threads(max(1, int(cfg.threads)))   # once, for this stage
+        frame_map: list[int] = []
+        found_any = [False]
+
+        def rows():
+            for r in landmarks:
+                frame_map.append(int(r.frame_index))
+                found_any[0] |= bool(r.face_found)
+                yield r.points, _frame_weights(r.points, r.confidence), bool(r.face_found)
+            if not found_any[0]:
+                raise CaptureError(f"detector {det.name} found no face in any of the {len(frame_map)} requested "
+                                   f"frames; check the video, --frames and the detector (its spec's "
+                                   f"crop.first_frame)")
+
+        how = replace(windowed_fit(inputs, stage_dir / "windows"), threads=None)
+        timings: dict = {}
+        chunks: list[str] = []
+        pending: list = []
+        fitted: list[int] = []
+
+        def flush():
+            if pending:
+                name = f"frames_{int(pending[0].frame):06d}.npz"
+                save_frame_fits(stage_dir / name, pending)
+                chunks.append(name)
+                pending.clear()
+
+        stream = fit_take_stream(inputs.actor, rows(), inputs.landmark_points, inputs.camera.camera, how,
+                                 timings=timings)
+        t_last = time.perf_counter()
+        for ff in stream:
+            ff = replace(ff, frame=frame_map[int(ff.frame)])
+            pending.append(ff)
+            fitted.append(int(ff.frame))
+            if len(pending) == FIT_CHUNK:
+                flush()
+            fits.put(ff)
+            now = time.perf_counter()
+            clocks["fit"].busy += now - t_last
+            t_last = now
+        flush()
+        clocks["fit"].busy = max(0.0, clocks["fit"].busy - timings.get("wait_s", 0.0))
+        clocks["fit"].extra = {"chunks": chunks, "frames": fitted,
+                               **{k: v for k, v in timings.items() if isinstance(v, (int, float))}}
+        fits.put(_END)
+
+    # export, in this thread. The writers are opened (pxr, av imported) before the other stages start:
+    # a C extension loading in one thread while another runs torch or FFmpeg can deadlock.
+    state_path = out / EXPORT_JSON
+    state = read_json(state_path)
+    previous = set((state or {}).get("files", [])) | set((state or {}).get("previous_files", []))
+    write_json(state_path, {"key": None, "status": "running", "files": [], "previous_files": sorted(previous)})
+    ctx = replace(export_context, options=replace(export_context.options, overwrite=True))
+    want_images = any(EXPORTERS[f].needs_image for f in formats)
+    try:
+        with open_exporters(formats, out, ctx) as writers, StageProgress("fit", n_frames, progress) as bar:
+            reader = VideoReader(cfg.video) if want_images else None
+            pipe_line.start("decode", decode, clocks["decode"])
+            pipe_line.start("detect", detect, clocks["detect"])
+            pipe_line.start("fit", fit, clocks["fit"])
+            source = iter(reader.frames(plan.wanted)) if reader is not None else None
+            try:
+                by_index = {}
+                for ff in fits:
+                    t0 = time.perf_counter()
+                    image = None
+                    for index, img in source if source is not None else ():
+                        if int(index) == int(ff.frame):
+                            image = img
+                            break
+                    writers.write(ff, image, detection_factory(_lookup(results, by_index, int(ff.frame))))
+                    clocks["export"].busy += time.perf_counter() - t0
+                    bar.advance(1)
+                pipe_line.check()
+                t_close = time.perf_counter()     # the writers finish (USD's last block, NPZ) as the block ends
+            finally:
+                if reader is not None:
+                    reader.close()
+    except _Stopped:
+        pipe_line.close()
+        pipe_line.check()
+        raise
+    except BaseException:
+        pipe_line.close()
+        raise
+    clocks["export"].busy += time.perf_counter() - t_close
+    pipe_line.close()
+    pipe_line.check()
+    clocks["export"].finished = time.perf_counter() - pipe_line.t0
+
+    # the take is done: the track, the fit under its key, the export's state
+    track = stack_frames(det.name, results, det.count)
+    track.fps, track.image_size = plan.info.fps, (plan.info.width, plan.info.height)
+    track.cached_frames, track.detected_frames = stats["cached"], stats["detected"]
+    _save_track(track, out / LANDMARKS)
+    key = fit_key(inputs, track)
+    final = fit_dir_for(out, key)
+    write_json(stage_dir / "key.json", key)
+    fx = clocks["fit"].extra
+    write_json(stage_dir / DONE_JSON, {"key": key, "chunks": fx.get("chunks", []), "frames": fx.get("frames", [])})
+    if final.exists():
+        shutil.rmtree(final)
+    stage_dir.rename(final)
+    rel = sorted({str(Path(f).resolve().relative_to(out.resolve())) for f in writers.paths})
+    for stale in sorted(previous - set(rel)):
+        p = out / stale
+        if p.is_file():
+            p.unlink()
+    write_json(state_path, {"key": export_key(track), "status": "done", "files": rel})
+
+    wall = time.perf_counter() - pipe_line.t0
+    c = clocks
+    log = [
+        {"stage": "detect", "status": "skipped" if stats["detected"] == 0 else "done", "seconds": c["detect"].busy,
+         "finished_after_s": c["detect"].finished, "decode_seconds": c["decode"].busy, "frames": len(track),
+         "frames_detected": stats["detected"], "frames_cached": stats["cached"],
+         "faces_found": int(track.face_found.sum()), "streamed": True},
+        {"stage": "fit", "status": "done", "seconds": c["fit"].busy, "finished_after_s": c["fit"].finished,
+         "frames": len(fx.get("frames", [])), "fit_dir": str(final), "streamed": True,
+         **{k: fx[k] for k in ("query_s", "pnp_s", "solve_s", "outputs_s", "windows_solved", "windows_cached")
+            if k in fx}},
+        {"stage": "export", "status": "done", "seconds": c["export"].busy, "finished_after_s": wall,
+         "files": len(rel), "streamed": True},
+    ]
+    return StreamResult(track, final, log)
+
+
+def _frames_off_heap() -> None:
+    """Serve large allocations (decoded frames: MBs each) by mmap, returned to the system when freed.
+
+    glibc raises its mmap threshold after the first large free, so later frames come from the heaps of
+    the threads that decode and detect, which fragment: the resident memory then grew with the take's
+    length (1.1 GB at 75 frames of 1080p, 1.5 GB at 300). A fixed threshold keeps it flat. No-op off glibc.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.mallopt(-3, 1 << 20)      # M_MMAP_THRESHOLD = 1 MiB (fixed: no dynamic adjustment)
+    except (OSError, AttributeError):
+        pass
+
+
+def _lookup(results: list, cache: dict, frame: int):
+    """The FrameLandmarks of ``frame`` (results grow in frame order; older ones are indexed once)."""
+    if frame not in cache:
+        for r in results[len(cache):]:
+            cache[int(r.frame_index)] = r
+    return cache[frame]
+
+
+def _save_track(track, path: Path) -> None:
+    """Write ``detections/track.npz`` unless it already holds these landmarks (as the detect stage does)."""
+    from capture.detector import LandmarkTrack
+
+    new = array_digest(track.frame_index, track.points, track.confidence, track.face_found)
+    if path.is_file():
+        try:
+            o = LandmarkTrack.load_npz(path)
+            if array_digest(o.frame_index, o.points, o.confidence, o.face_found) == new:
+                return
+        except Exception:
+            pass
+    track.save_npz(path)
+
+
+class _EmptyTrack:
+    """Stands in for the track in :func:`fit_key` before the landmarks are known."""
+
+    frame_index = np.zeros(0, np.int64)
+    points = np.zeros((0, 0, 2))
+    confidence = None
+    face_found = np.zeros(0, bool)

@@ -1,0 +1,119 @@
+"""report.html and the shoot page: series against hand-computed values, a self-contained page, relative links."""
+
+from __future__ import annotations
+
+import base64
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from capture.export.report_html import figures, render_html, shoot_html, take_series, worst_frames
+from capture.export.rig import R_FRONT
+
+
+@dataclass
+class Fit:
+    frame: int
+    head_R: np.ndarray
+    head_t: np.ndarray
+    jaw_R: np.ndarray
+    jaw_t: np.ndarray
+    vertices: np.ndarray
+    coefficients_base: np.ndarray
+    status: str = "fitted"
+
+
+@dataclass
+class Det:
+    points: np.ndarray
+    confidence: np.ndarray | None
+    face_found: bool = True
+
+
+def rot_y(deg):
+    a = np.deg2rad(deg)
+    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+
+
+def make_take(T=12, accel=0.2, pop_frame=7, pop=1.5):
+    rng = np.random.default_rng(0)
+    base = rng.normal(0, 30, (50, 3))
+    fits, dets = [], {}
+    for j in range(T):
+        head = v = base + np.array([0.0, 0.5 * accel * j * j, 0.0])   # constant acceleration along y (head frame)
+        if j == pop_frame:
+            head = v + [0.0, 0.0, pop]
+        R, t = R_FRONT @ rot_y(2.0 * j), np.array([3.0 * j, 0.0, 600.0])  # the head turns and moves: removed
+        fits.append(Fit(10 + j, R, t, np.eye(3), np.zeros(3), (head @ R.T + t).astype(np.float32),
+                        np.array([0.1 * j, 0.5]), "bridged" if j == 3 else "fitted"))
+        conf = np.linspace(0.0, 1.0, 11)
+        dets[10 + j] = Det(np.zeros((11, 2)), conf, face_found=j != 3)
+    return fits, dets
+
+
+def test_take_series_against_hand_values():
+    fits, dets = make_take()
+    errors = {10 + j: 0.1 * j for j in range(12)}
+    errors[13] = None
+    s = take_series(iter(fits), 25.0, ("jawOpen", "smile"), errors, "px", dets)
+    np.testing.assert_array_equal(s.frame, np.arange(10, 22))
+    np.testing.assert_allclose(s.time_s, s.frame / 25.0)
+    np.testing.assert_allclose(s.head_deg[:, 0], 2.0 * np.arange(12), atol=1e-9)        # yaw
+    np.testing.assert_allclose(s.head_deg[:, 1:], 0.0, atol=1e-9)
+    np.testing.assert_allclose(s.weights[:, 0], 0.1 * np.arange(12))
+    # jitter: |a| where the motion is smooth (float32 meshes: 1e-4 mm), the pop stands out around frame 7
+    smooth = [j for j in range(1, 11) if abs(j - 7) > 1]
+    np.testing.assert_allclose(s.jitter_mm[smooth], 0.2, atol=2e-4)
+    assert np.isnan(s.jitter_mm[[0, 11]]).all()
+    assert np.nanargmax(s.jitter_mm) == 7 and s.jitter_mm[7] > 2.5
+    # confidences 0, 0.1 .. 1.0: median 0.5, share >= 0.5 is 6/11; no face at j = 3
+    assert s.conf_median[0] == 0.5 and abs(s.conf_share[0] - 6 / 11) < 1e-12 and np.isnan(s.conf_median[3])
+    assert not s.face_found[3] and s.face_found.sum() == 11
+    assert np.isnan(s.error[3])
+    assert worst_frames(s, 3) == [21, 20, 19]
+
+
+def test_render_html_is_self_contained():
+    fits, dets = make_take()
+    s = take_series(iter(fits), 25.0, ("jawOpen", "smile"), {10 + j: 0.1 * j for j in range(12)}, "px", dets)
+    ok, png = cv2.imencode(".png", np.zeros((8, 8, 3), np.uint8))
+    thumbs = [(21, base64.b64encode(png.tobytes()).decode())]
+    report = {"command": "capture run", "video": {"path": "/data/take7.mp4"}, "actor": {"name": "A"},
+              "camera": {"source": "default guess", "is_default": True},
+              "frames": {"requested": 12, "fitted": 12, "skipped": 0},
+              "error": {"unit": "px", "mean": 0.55, "median": 0.55, "max": 1.1, "worst_frame": 21}}
+    page = render_html(report, s, figures(s), thumbs)
+    assert not re.search(r"(src|href)\s*=\s*['\"]?(https?:|//)", page) and "<script" not in page
+    imgs = re.findall(r"src='data:image/png;base64,([^']+)'", page)
+    assert len(imgs) == 6                                   # 5 figures + 1 thumbnail
+    for b in imgs:
+        img = cv2.imdecode(np.frombuffer(base64.b64decode(b), np.uint8), cv2.IMREAD_COLOR)
+        assert img is not None and img.size > 0
+    assert "take7.mp4" in page and "DEFAULT CAMERA" in page and "worst frame 21" in page
+    assert "1 bridged" in page and "1 without a face" in page
+
+
+def test_shoot_page_links_each_take_report(tmp_path):
+    out = tmp_path / "shoot_out"
+    (out / "a").mkdir(parents=True)
+    (out / "a" / "report.html").write_text("<html></html>")
+    report = {"name": "day1", "shoot": "day1.toml", "totals": {"takes": 2, "done": 1, "failed": 1},
+              "takes": [{"take": "a", "status": "done", "out": str(out / "a"), "frames_requested": 10,
+                         "frames_fitted": 10, "reprojection_mean_px": 0.4, "seconds": 12.0},
+                        {"take": "b", "status": "failed", "out": str(out / "b"), "error": "video missing"}]}
+    page = shoot_html(report, out)
+    assert "href='a/report.html'" in page and (out / "a" / "report.html").is_file()
+    assert "failed</span> video missing" in page and page.count("<tr>") == 3
+    assert "0.40" in page
+
+
+def test_batch_report_writes_the_shoot_page(tmp_path):
+    from capture.batch.report import write_batch_report
+
+    report = {"name": "s", "out": str(tmp_path), "takes": [], "totals": {"takes": 0}}
+    write_batch_report(tmp_path, report)
+    assert (tmp_path / "batch_report.html").read_text().startswith("<!doctype html>")
+    assert Path(tmp_path / "batch_report.json").is_file()
