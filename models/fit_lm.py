@@ -26,24 +26,22 @@ from dataclasses import dataclass
 import torch
 
 from calib.projection import project_points
-from models.fit import (ActorAtPoints, FramePose, Observations, SequenceFit, compose_poses, monocular_priors,
-                        observation_weights, robust_2d)
+from models.fit_energy import (
+    jaw_prior_target,
+    monocular_priors,
+    observation_weights,
+    robust_2d,
+)
+from models.fit_state import (
+    ActorAtPoints,
+    FramePose,
+    Observations,
+    SequenceFit,
+    compose_poses,
+)
+from models.rotation import so3_exp
 
-__all__ = ["LMResult", "solve_base", "so3_exp", "projection_jacobian"]
-
-
-def so3_exp(v: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices ``(*, 3, 3)`` of rotation vectors ``v (*, 3)`` (radians): Rodrigues' formula
-    ``I + A [v]x + B [v]x^2`` with its Taylor series near 0 (differentiable everywhere)."""
-    t2 = (v * v).sum(-1)
-    small = t2 < 1e-6
-    safe = torch.where(small, torch.ones_like(t2), t2)
-    t = torch.sqrt(safe)
-    A = torch.where(small, 1 - t2 / 6 + t2 * t2 / 120, torch.sin(t) / t)
-    B = torch.where(small, 0.5 - t2 / 24 + t2 * t2 / 720, (1 - torch.cos(t)) / safe)
-    S = _skew(v)
-    eye = torch.eye(3, dtype=v.dtype, device=v.device)
-    return eye + A[..., None, None] * S + B[..., None, None] * (S @ S)
+__all__ = ["LMResult", "projection_jacobian", "so3_exp", "solve_base"]
 
 
 @dataclass
@@ -78,6 +76,8 @@ class _Problem:
         self.base = [cast(fit.head_R0), cast(fit.head_t0), cast(fit.jaw_R0), cast(fit.jaw_t0), cast(fit.coeff0)]
         self.J, self.E = self.base[4].shape
         self.n = 12 + self.E
+        # the jaw prior's target, held at the solve's start (re-evaluated at every solve)
+        self.jaw_tR, self.jaw_tt = (x.to(f64) for x in jaw_prior_target(actor, self.s, self.Fw_mean + self.base[4]))
 
     def totals(self, d: torch.Tensor | None = None) -> tuple[FramePose, torch.Tensor]:
         """Poses and coefficient offsets ``(J, E)`` at base + ``d`` (``d (J, n)``; None: the base)."""
@@ -115,8 +115,8 @@ class _Problem:
             e += s.pose_accel_weight * (acc(pose.head_t / u) + acc(pose.head_R) + acc(pose.jaw_t / u) +
                                         acc(pose.jaw_R))
         if s.jaw_prior_weight > 0:
-            e += s.jaw_prior_weight * (float((pose.jaw_t / u).square().sum(-1).mean()) +
-                                       float((pose.jaw_R - torch.eye(3, dtype=c.dtype)).square().sum((-1, -2)).mean()))
+            e += s.jaw_prior_weight * (float(((pose.jaw_t - self.jaw_tt) / u).square().sum(-1).mean()) +
+                                       float((pose.jaw_R - self.jaw_tR).square().sum((-1, -2)).mean()))
         if s.coeff_temporal_weight > 0 and J > 1:
             dc = c[1:] - c[:-1]
             e += s.coeff_temporal_weight * (self.Fw_sq_diff + P * float((2 * self.Fw_diff_mean * dc +
@@ -187,8 +187,8 @@ class _Problem:
                 _add_stencil(H, g, val.reshape(J, -1), G, cols, (1.0, -2.0, 1.0), k)
         if s.jaw_prior_weight > 0:
             k = math.sqrt(s.jaw_prior_weight / J)
-            _add_stencil(H, g, pose.jaw_t / u, eye3.expand(J, 3, 3), slice(9, 12), (1.0,), k)
-            _add_stencil(H, g, (pose.jaw_R - eye3).reshape(J, 9),
+            _add_stencil(H, g, (pose.jaw_t - self.jaw_tt) / u, eye3.expand(J, 3, 3), slice(9, 12), (1.0,), k)
+            _add_stencil(H, g, (pose.jaw_R - self.jaw_tR).reshape(J, 9),
                          torch.einsum("aik,jkl->jila", _skew(eye3), pose.jaw_R).reshape(J, 9, 3), slice(6, 9), (1.0,), k)
         if s.coeff_temporal_weight > 0 and J > 1:
             k = math.sqrt(s.coeff_temporal_weight / (J - 1))

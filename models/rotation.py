@@ -89,3 +89,25 @@ def kabsch(src: torch.Tensor, dst: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     R = Vh.transpose(-1, -2) @ D @ U.transpose(-1, -2)
     t = mu_d.squeeze(-2) - (R @ mu_s.transpose(-1, -2)).squeeze(-1)
     return R, t
+
+
+def so3_exp(v: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices ``(*, 3, 3)`` of rotation vectors ``v (*, 3)`` (radians): Rodrigues' formula
+    ``I + A [v]x + B [v]x^2`` with its Taylor series near 0 (differentiable everywhere)."""
+    t2 = (v * v).sum(-1)
+    small = t2 < 1e-6
+    safe = torch.where(small, torch.ones_like(t2), t2)
+    t = torch.sqrt(safe)
+    A = torch.where(small, 1 - t2 / 6 + t2 * t2 / 120, torch.sin(t) / t)
+    B = torch.where(small, 0.5 - t2 / 24 + t2 * t2 / 720, (1 - torch.cos(t)) / safe)
+    S = skew(v)
+    eye = torch.eye(3, dtype=v.dtype, device=v.device)
+    return eye + A[..., None, None] * S + B[..., None, None] * (S @ S)
+
+
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """``[v]x (*, 3, 3)`` with ``[v]x a = v x a``."""
+    z = torch.zeros_like(v[..., 0])
+    return torch.stack([torch.stack([z, -v[..., 2], v[..., 1]], -1),
+                        torch.stack([v[..., 2], z, -v[..., 0]], -1),
+                        torch.stack([-v[..., 1], v[..., 0], z], -1)], -2)

@@ -25,7 +25,8 @@ def _parse_distortion(text: Optional[str]) -> tuple[float, ...] | None:
 def synth_command(
     actor: str = typer.Option(..., "--actor", help="Actor name or folder to render."),
     out: Path = typer.Option(..., "--out", help="Output folder of the take."),
-    frames: int = typer.Option(150, "--frames", help="Number of frames."),
+    frames: Optional[int] = typer.Option(None, "--frames", help="Number of frames (default 150; with --meshes all "
+                                         "of the sequence's)."),
     fps: float = typer.Option(25.0, "--fps", help="Frame rate."),
     size: Optional[str] = typer.Option(None, "--size", help="Frame size WxH (default 1280x720, or the camera file's)."),
     preset: str = typer.Option("talk", "--preset", help="Motion: talk, turns, calm, frontal (no head rotation), yaw30."),
@@ -39,6 +40,11 @@ def synth_command(
     look: bool = typer.Option(False, "--look", help="Also write take_look.mp4: the frames shaded like a face, "
                               "for people (the detector reads the coded take.mp4)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing take in --out."),
+    meshes: Optional[Path] = typer.Option(None, "--meshes", help="Render this registered mesh sequence instead of "
+                                          "the actor's own motion: a folder of OBJ/PLY (name order) or an .npz "
+                                          "(T, V, 3), in the actor's topology and template frame; --preset then "
+                                          "only moves the head (frontal: not at all)."),
+    units: str = typer.Option("mm", "--units", help="Units of --meshes: mm, cm, m, in."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
     """Render a synthetic take of an actor with known truth: video, camera, ground-truth meshes and
@@ -46,8 +52,10 @@ def synth_command(
     from capture.synth.progress import synthesize_shown
     from capture.synth.take import SynthConfig, parse_size
 
+    if frames is None:
+        frames = 1_000_000 if meshes is not None else 150
     cfg = SynthConfig(actor=actor, out=out, frames=frames, fps=fps, size=parse_size(size), preset=preset, seed=seed,
                       landmarks=landmarks, distortion=_parse_distortion(distortion), camera=camera, codec=codec,
-                      crf=crf, obj=obj, look=look, overwrite=overwrite)
+                      crf=crf, obj=obj, look=look, overwrite=overwrite, meshes=meshes, units=units)
     path = synthesize_shown(cfg, progress)
     typer.echo(f"synthetic take written to {path}")

@@ -55,7 +55,7 @@ from models.fit import (FIT_PRESETS, ActorAtPoints, FitSettings, Observations, S
 __all__ = ["FrameFit", "fit_take", "fit_meshes", "resolve_settings", "resolved_settings_dict", "window_plan",
            "farthest_point_sample"]
 
-CACHE_VERSION = 2  # 2: SequenceFit has a jaw and coefficient base
+CACHE_VERSION = 3  # 2: SequenceFit has a jaw and coefficient base; 3: and a coefficient field
 
 
 @dataclass(frozen=True)
@@ -295,7 +295,7 @@ def _warm_state(prev: dict, prev_start: int, prev_end: int, start: int, n_frames
             new[:n_ov] = x[off:off + n_ov]
         return new
 
-    for k in ("codes", "jaw_R0", "jaw_t0", "coeff0"):
+    for k in ("codes", "jaw_R0", "jaw_t0", "coeff0", "field"):
         if k in prev:
             state[k] = moved(prev[k])
     state["head_R0"] = moved(prev["head_R0"], head_R0)
@@ -463,7 +463,8 @@ def _fingerprint(*parts) -> str:
 
 
 def _query(actor, points: np.ndarray, device) -> ActorAtPoints:
-    return ActorAtPoints.query(actor.model, torch.as_tensor(points, dtype=torch.float32, device=device))
+    return ActorAtPoints.query(actor.model, torch.as_tensor(points, dtype=torch.float32, device=device),
+                               getattr(actor, "jaw_rot6d", None), getattr(actor, "jaw_t", None))
 
 
 # ----------------------------------------------------------------------------------------------

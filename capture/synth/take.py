@@ -17,6 +17,10 @@ Outputs in the take directory (all written atomically; ``truth.json`` last, it m
     meshes/frame_XXXXXX.obj      with --obj only
     truth.json                   resolved settings, seed, timings, versions, files
 
+With ``meshes`` (``capture synth --meshes SEQ``, :mod:`capture.synth.mesh_sequence`) the face of each
+frame is the given registered mesh (template frame, mm) instead of the actor's model, with the preset's
+head motion on top: the truth of shapes outside the actor's span.
+
 The actor package gets ``landmarks/<name>.json`` (the detector's embedding; exact by construction).
 Truth meshes are in the camera frame; the head-frame mesh of frame j is
 ``head_R[j]^T (v - head_t[j])``.
@@ -28,7 +32,7 @@ import platform
 import shutil
 import time
 from contextlib import ExitStack
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -46,6 +50,7 @@ from capture.synth import scene
 from capture.synth.detector_onnx import (LandmarkSet, build_detector, embedding_dict, export_onnx, landmark_colours,
                                          sample_landmarks, spec_dict)
 from capture.synth.look import shade
+from capture.synth.mesh_sequence import read_mesh_sequence
 from capture.synth.motion import PRESETS, generate_motion, preset_dict
 from capture.synth.raster import Raster, rasterize, sample_nearest
 from capture.synth.texture import BACKGROUND, PositionCode, dither_to_uint8
@@ -83,6 +88,8 @@ class SynthConfig:
     obj: bool = False
     look: bool = False
     overwrite: bool = False
+    meshes: Path | None = None                   # a mesh sequence to render (capture.synth.mesh_sequence)
+    units: str = "mm"                            # units of --meshes
 
 
 def parse_size(text: str | None) -> tuple[int, int] | None:
@@ -229,6 +236,10 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
     _check_config(cfg)
     actor = load_actor(cfg.actor)
     camera = resolve_camera(cfg)
+    sequence = None
+    if cfg.meshes is not None:  # the expressions come from the meshes, the head motion from the preset
+        sequence = read_mesh_sequence(cfg.meshes, len(actor.template.vertices), cfg.units)[:cfg.frames]
+        cfg = replace(cfg, frames=len(sequence))
     out = Path(cfg.out)
     _prepare_out(out, cfg.overwrite)
     stage = on_stage or (lambda d, n: None)
@@ -243,19 +254,26 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
     angles = np.degrees(np.linalg.norm(Rotation.from_matrix(
         rot6d_to_matrix(actor.jaw_rot6d.double()).numpy()).as_rotvec(), axis=1))
     motion = generate_motion(PRESETS[cfg.preset], cfg.frames, cfg.fps, names, cfg.seed, angles)
+    if sequence is not None:
+        motion.jaw_open[:] = 0.0
+        motion.coefficients[:] = 0.0
+        motion.jaw_shape = None
     jaw_R, jaw_t = jaw_transforms(actor, motion.jaw_shape, motion.jaw_open)
     head_R, head_t = scene.head_transforms(camera, tv, motion.yaw_deg, motion.pitch_deg, motion.roll_deg,
                                            motion.offset_mm)
-    with torch.no_grad():
-        c = torch.as_tensor(tv, dtype=torch.float32)
-        anatomy = actor.model(c)
-        verts_head = np.empty((cfg.frames, len(tv), 3), dtype=np.float32)
-        for s in range(0, cfg.frames, 64):
-            e = min(cfg.frames, s + 64)
-            verts_head[s:e] = actor.model.shape(
-                anatomy, matrix_to_rot6d(torch.as_tensor(jaw_R[s:e], dtype=torch.float32)),
-                torch.as_tensor(jaw_t[s:e], dtype=torch.float32),
-                torch.as_tensor(motion.coefficients[s:e], dtype=torch.float32)).numpy()
+    if sequence is not None:
+        verts_head = sequence.astype(np.float32)
+    else:
+        with torch.no_grad():
+            c = torch.as_tensor(tv, dtype=torch.float32)
+            anatomy = actor.model(c)
+            verts_head = np.empty((cfg.frames, len(tv), 3), dtype=np.float32)
+            for s in range(0, cfg.frames, 64):
+                e = min(cfg.frames, s + 64)
+                verts_head[s:e] = actor.model.shape(
+                    anatomy, matrix_to_rot6d(torch.as_tensor(jaw_R[s:e], dtype=torch.float32)),
+                    torch.as_tensor(jaw_t[s:e], dtype=torch.float32),
+                    torch.as_tensor(motion.coefficients[s:e], dtype=torch.float32)).numpy()
     verts_cam = scene.to_camera(verts_head.astype(np.float64), head_R, head_t).astype(np.float32)
     timings["model_s"] = time.perf_counter() - t0
 
@@ -334,6 +352,10 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
                         "pixels": "OpenCV, pixel centres at integer coordinates",
                         "meshes": "truth_meshes.npz vertices in camera coordinates (mm)"},
         "jaw_shape": None if motion.jaw_shape is None else names[motion.jaw_shape],
+        "meshes": (None if cfg.meshes is None else
+                   {"source": str(cfg.meshes), "units": cfg.units, "frames": T,
+                    "note": "expressions from the mesh sequence (template frame), head motion of the preset on "
+                            "top; truth_params jaw and coefficients are not known (rest and 0)"}),
         "colour_code": {**code.to_dict(), "quantisation": "ordered 4x4 Bayer dither (capture.synth.texture)"},
         "detector": {"name": name, "onnx": f"detector/{name}.onnx", "spec": f"detector/{name}.json",
                      "embedding": str(actor.path / "landmarks" / f"{name}.json")},

@@ -1,0 +1,275 @@
+"""Per-point expression coefficients for 2D fits: a smooth coefficient field solved by Gauss-Newton.
+
+The paper's ``F_W(z_j, c)`` lets the expression coefficients vary over the face, which is what takes
+a fit beyond the span of the training shapes (an actor learned from 19 shapes fitting expressions it
+never saw). Fitted by Adam from 2D landmarks it needs hundreds of iterations and overfits the
+landmarks' noise in depth. This module gives the same freedom a form that a few Gauss-Newton steps
+solve exactly: per frame j
+
+    w_j(c) = m_j(c) + sum_b phi_b(c) a_jb,        phi_b(c) = g_b(c) / sum_b' g_b'(c),
+    g_b(c) = exp(-|c - c_b|^2 / (2 sigma^2))
+
+with ``m_j(c)`` everything else (``F_W`` and the base offsets ``coeff0``), ``B`` centres ``c_b``
+(farthest-point samples of the fit points on the template) and per-frame coefficients ``a_jb (E,)``.
+The displacement a frame gets is ``sum_e w_je(c) E_e(c)``: points move only where and how the
+actor's expressions move them (the anatomical constraint), smoothly over the face (sigma), and the
+field is linear in ``a``: with the poses fixed, the 2D energy is a least-squares problem in ``a``
+that is nonlinear only through the projection.
+
+Energy in ``a`` (the poses, ``F_W`` and ``coeff0`` fixed; all terms of
+:func:`models.fit_energy.energy_terms` that depend on ``w``, plus two priors of the field):
+
+* the 2D landmark term (confidence-weighted pseudo-Huber, as in the base solve),
+* ``coeff_weight * mean_{j,p,e} w^2`` and ``coeff_temporal_weight * mean_{j,p} |w_j - w_{j-1}|^2``,
+* ``field_weight * mean_{j,b,e} a^2``: the field stays at 0 where the landmarks say nothing,
+* ``field_temporal_weight * mean_j sum_{b,e} (a_j - a_{j-1})^2``: no flicker,
+* ``field_motion_weight * mean_{j,p} |d_jp / unit|^2`` with ``d`` the displacement the field adds: of the
+  fields that explain the landmarks the one that moves the face least, so that motion along the
+  camera axis (which the landmarks do not see) is not invented.
+
+The normal equations are block tridiagonal over frames (blocks of ``B E`` unknowns, coupled only by
+the temporal terms) and are solved by block Cholesky (:func:`solve_block_tridiagonal`), with
+Marquardt's damping and a step kept only when the exact energy goes down.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from calib.projection import project_points
+from models.fit_energy import observation_weights, robust_2d
+from models.fit_lm import projection_jacobian
+from models.fit_state import ActorAtPoints, Observations, SequenceFit
+from models.lbs import lbs_jaw
+
+#: Centres per point in the Gauss-Newton matrix of the field (see _FieldProblem.normal_equations).
+NEAREST_CENTRES = 4
+
+__all__ = ["farthest_points", "field_centres", "field_energy", "rbf_basis", "solve_block_tridiagonal", "solve_field"]
+
+
+def rbf_basis(points: torch.Tensor, centres: torch.Tensor, sigma_mm: float) -> torch.Tensor:
+    """Normalised Gaussians ``phi (P, B)`` (rows sum to 1) of template points ``(P, 3)`` around ``centres (B, 3)``.
+
+    Computed in log space (a point far from every centre still gets weights that sum to 1).
+    """
+    d2 = torch.cdist(points.double(), centres.double()).square()
+    return torch.softmax(-d2 / (2.0 * sigma_mm ** 2), dim=1).to(points.dtype)
+
+
+def farthest_points(points: torch.Tensor, n: int) -> torch.Tensor:
+    """``n`` farthest-point samples ``(n, 3)`` of ``points (P, 3)``, starting from the one nearest their mean."""
+    P = points.shape[0]
+    if n >= P:
+        return points.clone()
+    x = points.double()
+    idx = [int(torch.argmin((x - x.mean(0)).square().sum(1)))]
+    d = (x - x[idx[0]]).square().sum(1)
+    for _ in range(1, n):
+        idx.append(int(torch.argmax(d)))
+        d = torch.minimum(d, (x - x[idx[-1]]).square().sum(1))
+    return points[torch.tensor(idx)]
+
+
+def field_centres(actor: ActorAtPoints, n: int, min_motion_mm: float = 1.0) -> torch.Tensor:
+    """``n`` centres ``(n, 3)``: farthest points among the fit points that the actor's expressions move
+    (``sqrt(sum_e |E_e(c)|^2) >= min_motion_mm``; all points when fewer than ``n`` do): a field
+    where nothing moves could only move nothing, so its centres go where the expressions act."""
+    motion = actor.expressions.detach().square().sum((-1, -2)).sqrt()
+    moving = actor.points.detach()[motion >= min_motion_mm]
+    return farthest_points(moving if moving.shape[0] >= n else actor.points.detach(), n)
+
+
+def solve_block_tridiagonal(D: torch.Tensor, U: torch.Tensor, g: torch.Tensor) -> torch.Tensor | None:
+    """Solve the symmetric positive definite block tridiagonal system ``A x = g``.
+
+    Args: D ``(J, m, m)`` the diagonal blocks ``A[j, j]``; U ``(J-1, m, m)`` the blocks ``A[j, j+1]``
+        (``A[j+1, j] = U[j]^T``); g ``(J, m)``.
+    Returns ``x (J, m)``, or None when a pivot block is not positive definite.
+    Block Cholesky (Thomas) elimination: ``S_0 = D_0``, ``S_j = D_j - U_{j-1}^T S_{j-1}^-1 U_{j-1}``.
+    """
+    J = D.shape[0]
+    Ls, Ws, ys = [], [], []
+    S, y = D[0], g[0]
+    for j in range(J):
+        L, info = torch.linalg.cholesky_ex(S)
+        if int(info) != 0:
+            return None
+        Ls.append(L)
+        ys.append(y)
+        if j + 1 < J:
+            W = torch.cholesky_solve(U[j], L)                    # S_j^-1 U_j
+            Ws.append(W)
+            S = D[j + 1] - U[j].T @ W
+            y = g[j + 1] - W.T @ y
+    x = [None] * J
+    x[J - 1] = torch.cholesky_solve(ys[J - 1][:, None], Ls[J - 1])[:, 0]
+    for j in range(J - 2, -1, -1):
+        x[j] = torch.cholesky_solve(ys[j][:, None], Ls[j])[:, 0] - Ws[j] @ x[j + 1]
+    return torch.stack(x)
+
+
+class _FieldProblem:
+    """The field energy of one window (poses and everything but the field fixed), in float64."""
+
+    def __init__(self, fit: SequenceFit, actor: ActorAtPoints, obs: Observations):
+        f64 = torch.float64
+        s = fit.settings
+        self.s = s
+        with torch.no_grad():
+            pose = fit.poses()
+            self.phi = fit.field_basis(actor.points).to(f64)                                   # (P, B)
+            saved = fit.field.clone()
+            fit.field.zero_()
+            self.m = fit.coefficients(actor).to(f64)                                            # (J, P, E)
+            fit.field.copy_(saved)
+            self.a0 = saved.to(f64)                                                            # (J, B, E)
+        self.E_basis = actor.expressions.detach().to(f64)                                      # (P, E, 3)
+        self.R = pose.head_R.detach().to(f64)
+        skinned = lbs_jaw(actor.neutral.detach().to(f64).expand(self.R.shape[0], -1, -1),
+                          actor.skin_weight.detach().to(f64).expand(self.R.shape[0], -1), pose.jaw_R.detach().to(f64),
+                          pose.jaw_t.detach().to(f64), actor.jaw_pivot.detach().to(f64))
+        local = skinned + torch.einsum("jpe,pec->jpc", self.m, self.E_basis)
+        self.x0 = torch.einsum("jab,jpb->jpa", self.R, local) + pose.head_t.detach().to(f64)[:, None]
+        self.p2d = torch.nan_to_num(obs.points2d.detach().to(f64))
+        self.w2d = observation_weights(obs, f64).detach().to(f64)
+        self.K = obs.K.detach().to(f64)
+        self.dist = None if obs.dist is None else obs.dist.detach().to(f64)
+        self.J, self.P, self.E = self.m.shape
+        self.B = self.phi.shape[1]
+
+    def displacement(self, a: torch.Tensor) -> torch.Tensor:
+        """The field's displacement ``(J, P, 3)`` mm (head frame) for coefficients ``a (J, B, E)``."""
+        return torch.einsum("jpe,pec->jpc", torch.einsum("pb,jbe->jpe", self.phi, a), self.E_basis)
+
+    def points(self, a: torch.Tensor) -> torch.Tensor:
+        """Camera-frame fit points ``(J, P, 3)`` for field coefficients ``a (J, B, E)``."""
+        return self.x0 + torch.einsum("jab,jpb->jpa", self.R, self.displacement(a))
+
+    def energy(self, a: torch.Tensor) -> float:
+        return float(field_energy(self, a))
+
+    def normal_equations(self, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Gauss-Newton blocks at ``a``: diagonal ``(J, m, m)``, upper ``(J-1, m, m)`` and ``g (J, m)``, ``m = B E``."""
+        s, J, P, E, B = self.s, self.J, self.P, self.E, self.B
+        m = B * E
+        x = self.points(a)
+        uv, Jp = projection_jacobian(x, self.K, self.dist)                                # (J, P, 2), (J, P, 2, 3)
+        r = uv - self.p2d
+        rp = s.robust_px
+        drho = torch.ones_like(r[..., 0]) if rp <= 0 else 1 / torch.sqrt(1 + r.square().sum(-1) / rp ** 2)
+        sw = torch.sqrt(self.w2d * drho / self.w2d.sum().clamp_min(1e-12))[..., None]    # (J, P, 1)
+        # G_p = sw Jp R_g E_p^T (2, E): the landmark residual's derivative wrt w_j(c_p)
+        JR = torch.einsum("jpia,jab->jpib", sw[..., None] * Jp, self.R)
+        G = torch.einsum("jpib,peb->jpie", JR, self.E_basis)                             # (J, P, 2, E)
+        Q = torch.einsum("jpie,jpif->jpef", G, G)                                         # (J, P, E, E)
+        gp = torch.einsum("jpie,jpi->jpe", G, sw * r)                                    # (J, P, E)
+        if s.field_motion_weight > 0:  # residual sqrt(k) E_p^T phi_p a_j / unit per point
+            k = s.field_motion_weight / (J * P * s.length_unit_mm ** 2)
+            Q = Q + k * torch.einsum("pec,pfc->pef", self.E_basis, self.E_basis)[None]
+            gp = gp + k * torch.einsum("pec,jpc->jpe", self.E_basis, self.displacement(a))
+        Q = Q.reshape(J, P, E * E).float()
+        # H_j[b, e, c, f] = sum_p phi_pb phi_pc Q_p[e, f], accumulated in float32 over each point's
+        # NEAREST_CENTRES largest weights (the rest are < 1e-3 for the default spacing): the Gauss-Newton
+        # matrix shapes the step only; the gradient and the energy that accepts a step are exact.
+        k = min(NEAREST_CENTRES, B)
+        val, idx = torch.topk(self.phi, k, dim=1)                                         # (P, k)
+        pair = (idx[:, :, None] * B + idx[:, None, :]).reshape(-1)                        # (P k k,)
+        pw = (val[:, :, None] * val[:, None, :]).reshape(P, k * k, 1).float()
+        D = torch.empty(J, m, m, dtype=torch.float64)
+        for j in range(J):
+            Hb = torch.zeros(B * B, E * E, dtype=torch.float32)
+            Hb.index_add_(0, pair, (pw * Q[j][:, None, :]).reshape(-1, E * E))
+            D[j] = Hb.reshape(B, B, E, E).permute(0, 2, 1, 3).reshape(m, m).double()
+        g = torch.einsum("pb,jpe->jbe", self.phi, gp).reshape(J, m)
+        U = torch.zeros(max(J - 1, 0), m, m, dtype=torch.float64)
+        eyeE = torch.eye(E, dtype=torch.float64)
+        PhiTPhi = self.phi.T @ self.phi                                                   # (B, B)
+        w = self.m + torch.einsum("pb,jbe->jpe", self.phi, a)                             # (J, P, E)
+        if s.coeff_weight > 0:
+            k = s.coeff_weight / (J * P * E)
+            D += k * torch.kron(PhiTPhi, eyeE)
+            g += k * torch.einsum("pb,jpe->jbe", self.phi, w).reshape(J, m)
+        if s.field_weight > 0:
+            k = s.field_weight / (J * B * E)
+            D += k * torch.eye(m, dtype=torch.float64)
+            g += k * a.reshape(J, m)
+        if J > 1:
+            Gt = torch.zeros(m, m, dtype=torch.float64)
+            dg = torch.zeros(J - 1, m, dtype=torch.float64)
+            if s.coeff_temporal_weight > 0:
+                k = s.coeff_temporal_weight / ((J - 1) * P)
+                Gt += k * torch.kron(PhiTPhi, eyeE)
+                dg += k * torch.einsum("pb,jpe->jbe", self.phi, w[1:] - w[:-1]).reshape(J - 1, m)
+            if s.field_temporal_weight > 0:
+                k = s.field_temporal_weight / (J - 1)
+                Gt += k * torch.eye(m, dtype=torch.float64)
+                dg += k * (a[1:] - a[:-1]).reshape(J - 1, m)
+            D[:-1] += Gt
+            D[1:] += Gt
+            U -= Gt
+            g[:-1] -= dg
+            g[1:] += dg
+        return D, U, g
+
+
+def field_energy(prob: _FieldProblem, a: torch.Tensor) -> torch.Tensor:
+    """The terms of the fitting energy that depend on the field coefficients ``a (J, B, E)`` (module docstring)."""
+    s, J = prob.s, prob.J
+    x = prob.points(a)
+    r2 = (project_points(x, prob.K, prob.dist) - prob.p2d).square().sum(-1)
+    e = (prob.w2d * robust_2d(r2, s.robust_px)).sum() / prob.w2d.sum().clamp_min(1e-12)
+    w = prob.m + torch.einsum("pb,jbe->jpe", prob.phi, a)
+    e = e + s.coeff_weight * w.square().mean()
+    e = e + s.field_weight * a.square().mean()
+    if s.field_motion_weight > 0:
+        e = e + s.field_motion_weight * (prob.displacement(a) / s.length_unit_mm).square().sum(-1).mean()
+    if J > 1:
+        e = e + s.coeff_temporal_weight * (w[1:] - w[:-1]).square().sum(-1).mean()
+        e = e + s.field_temporal_weight * (a[1:] - a[:-1]).square().sum((-1, -2)).mean()
+    return e
+
+
+def solve_field(fit: SequenceFit, actor: ActorAtPoints, obs: Observations, iterations: int) -> int:
+    """Minimise the field energy over ``fit.field`` (Gauss-Newton with Marquardt damping); in place.
+
+    Sets ``fit.field_centres`` (farthest points of ``actor.points``) when they are still all zero.
+    Returns the number of linearisations.
+    """
+    if fit.field.shape[1] == 0 or iterations <= 0 or obs.points2d is None:
+        return 0
+    with torch.no_grad():
+        if not bool(fit.field_centres.any()):
+            fit.field_centres.copy_(field_centres(actor, fit.field.shape[1]))
+    prob = _FieldProblem(fit, actor, obs)
+    J = prob.J
+    a = prob.a0.clone()
+    energy = prob.energy(a)
+    mu, it = 1e-4, 0
+    while it < iterations:
+        D, U, g = prob.normal_equations(a)
+        diag = D.diagonal(dim1=1, dim2=2).clamp_min(1e-12 * float(D.diagonal(dim1=1, dim2=2).max()) + 1e-30)
+        improved = False
+        while it < iterations:
+            it += 1
+            step = solve_block_tridiagonal(D + torch.diag_embed(mu * diag), U, g)
+            if step is None:
+                mu *= 4
+                continue
+            trial_a = a - step.reshape(J, prob.B, prob.E)
+            trial = prob.energy(trial_a)
+            if math.isfinite(trial) and trial < energy:
+                improved = energy - trial >= fit.settings.lm_tol * abs(energy)
+                a, energy = trial_a, trial
+                mu = max(mu / 3, 1e-9)
+                break
+            mu *= 4
+            if mu > 1e8:
+                break
+        if not improved:
+            break
+    with torch.no_grad():
+        fit.field.copy_(a.to(fit.field.dtype))
+    return it
