@@ -41,22 +41,13 @@ import torch
 from calib.projection import project_points
 from models.fit_energy import observation_weights, robust_2d
 from models.fit_lm import projection_jacobian
-from models.fit_state import ActorAtPoints, Observations, SequenceFit
+from models.fit_state import ActorAtPoints, Observations, SequenceFit, rbf_basis
 from models.lbs import lbs_jaw
 
 #: Centres per point in the Gauss-Newton matrix of the field (see _FieldProblem.normal_equations).
 NEAREST_CENTRES = 4
 
 __all__ = ["farthest_points", "field_centres", "field_energy", "rbf_basis", "solve_block_tridiagonal", "solve_field"]
-
-
-def rbf_basis(points: torch.Tensor, centres: torch.Tensor, sigma_mm: float) -> torch.Tensor:
-    """Normalised Gaussians ``phi (P, B)`` (rows sum to 1) of template points ``(P, 3)`` around ``centres (B, 3)``.
-
-    Computed in log space (a point far from every centre still gets weights that sum to 1).
-    """
-    d2 = torch.cdist(points.double(), centres.double()).square()
-    return torch.softmax(-d2 / (2.0 * sigma_mm ** 2), dim=1).to(points.dtype)
 
 
 def farthest_points(points: torch.Tensor, n: int) -> torch.Tensor:

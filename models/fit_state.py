@@ -23,6 +23,15 @@ from models.lbs import lbs_jaw
 from models.rotation import IDENTITY_6D, apply_rigid, rot6d_to_matrix, so3_exp
 
 
+def rbf_basis(points: torch.Tensor, centres: torch.Tensor, sigma_mm: float) -> torch.Tensor:
+    """Normalised Gaussians ``phi (P, B)`` (rows sum to 1) of template points ``(P, 3)`` around ``centres (B, 3)``.
+
+    Computed in log space (a point far from every centre still gets weights that sum to 1).
+    """
+    d2 = torch.cdist(points.double(), centres.double()).square()
+    return torch.softmax(-d2 / (2.0 * sigma_mm ** 2), dim=1).to(points.dtype)
+
+
 @dataclass
 class ActorAtPoints:
     """The frozen actor evaluated once at P template points (mm)."""
@@ -158,8 +167,6 @@ class SequenceFit(nn.Module):
 
     def field_basis(self, points: torch.Tensor) -> torch.Tensor:
         """``phi (P, B)``: the field's normalised Gaussians at template points ``(P, 3)`` mm."""
-        from models.fit_field import rbf_basis
-
         return rbf_basis(points, self.field_centres, self.settings.field_sigma_mm)
 
     def net_poses(self) -> FramePose:
