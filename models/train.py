@@ -52,14 +52,16 @@ class TrainSettings:
     """Weight each sampled point by ``1 / (V q)`` (q its probability) so that the per-point means
     of the losses stay unbiased estimates of the paper's means over all points."""
     solve_at_start: bool = False
-    """Solve the linear output layers once before the first step: E then starts at the
-    least-squares fit of the shape deltas (what LBS of the initial neutral leaves), B and D at
-    the bones and the skin."""
+    """Solve E's output layer once before the first step: the expression field then starts at the
+    least-squares fit of the shape deltas (what LBS of the initial neutral leaves). (B and D wait
+    for the first scheduled solve: with the random initial normals their joint solve is poor.)"""
     expression_solve_every: int = 100
     """Closed-form solve of E's output layer every this many steps (0 = never, as in the paper)."""
     expression_solve_ridge: float = 1e-6
     anatomy_solve: bool = True
-    """With each expression solve, also solve B's and D's output layers jointly (``solve_anatomy``)."""
+    """Also solve B's and D's output layers jointly (``solve_anatomy``)."""
+    anatomy_solve_every: int = 0
+    """Steps between the anatomy solves (0 = with every expression solve)."""
     expression_solve_start: float = 0.0
     """The first closed-form solve waits for this fraction of the iterations, so that the jaw
     (LBS) explains the rigid part of the motion before the expression basis absorbs it."""
@@ -302,7 +304,7 @@ class ActorTrainer:
         """One Adam step (plus the closed-form solves when due); returns the loss terms."""
         self.model.train()
         if self.iteration == 0 and self.settings.solve_at_start:
-            self.solve_output_layers()
+            self.solve_output_layers(anatomy=False)
         terms = self.losses(self._sample())
         self.optimizer.zero_grad(set_to_none=True)
         terms["total"].backward()
@@ -312,19 +314,20 @@ class ActorTrainer:
         every = self.settings.expression_solve_every
         start = self.settings.expression_solve_start * self.settings.iterations
         if every > 0 and self.iteration % every == 0 and self.iteration >= start:
-            self.solve_output_layers()
+            every_anatomy = self.settings.anatomy_solve_every or every
+            self.solve_output_layers(anatomy=self.settings.anatomy_solve and self.iteration % every_anatomy == 0)
         return {k: float(v.detach()) for k, v in terms.items()}
 
     @torch.no_grad()
-    def solve_output_layers(self) -> None:
-        """The closed-form solves: B's and D's output layers (when ``anatomy_solve``), then E's.
+    def solve_output_layers(self, anatomy: bool = True) -> None:
+        """The closed-form solves: B's and D's output layers (when ``anatomy``), then E's.
 
         The sine features of the five networks at the template points are computed once and
         shared by both solves (the output layers are all that changes between them).
         """
         x = self.model.normalize(self.data.template)
         features = {name: getattr(self.model, name).features(x) for name in self.model.NETWORKS}
-        if self.settings.anatomy_solve:
+        if anatomy:
             self.solve_anatomy(features)
         self.solve_expressions(features)
 
@@ -408,10 +411,15 @@ class ActorTrainer:
         Gn = torch.einsum("pab,pb->pa", G, n)
         M = torch.zeros(4 * h1, 4 * h1, dtype=f64, device=c.device)
         rhs = torch.zeros(4 * h1, dtype=f64, device=c.device)
+        # The (width+1)^2 blocks are sums over the P points: float32 products (their rounding is
+        # far below the ridge) and G's symmetry halve the cost of the solve.
+        hBf, hDf, Gf, Gnf = hB.float(), hD.float(), G.float(), Gn.float()
         for a in range(3):
-            for b in range(3):
-                M[a * h1:(a + 1) * h1, b * h1:(b + 1) * h1] = a_s * sb * sb * (hB.T * G[:, a, b]) @ hB
-            bd = a_s * sb * sd * (hB.T * Gn[:, a]) @ hD
+            for b in range(a, 3):
+                blk = a_s * sb * sb * ((hBf.T * Gf[:, a, b]) @ hBf).double()
+                M[a * h1:(a + 1) * h1, b * h1:(b + 1) * h1] = blk
+                M[b * h1:(b + 1) * h1, a * h1:(a + 1) * h1] = blk.T
+            bd = a_s * sb * sd * ((hBf.T * Gnf[:, a]) @ hDf).double()
             M[a * h1:(a + 1) * h1, 3 * h1:] = bd
             M[3 * h1:, a * h1:(a + 1) * h1] = bd.T
             rhs[a * h1:(a + 1) * h1] = a_s * sb * hB.T @ q[:, a]
@@ -427,8 +435,9 @@ class ActorTrainer:
             hDm = torch.cat([model.D.features(xm).double(), onem], 1)
             a_b, a_d = w.bone / (m * u2), w.thickness / (m * u2)
             target_b = d.bone_target.double() - d.constraint_points.double()
+            gram_bm = a_b * sb * sb * hBm.T @ hBm
             for a in range(3):
-                M[a * h1:(a + 1) * h1, a * h1:(a + 1) * h1] += a_b * sb * sb * hBm.T @ hBm
+                M[a * h1:(a + 1) * h1, a * h1:(a + 1) * h1] += gram_bm
                 rhs[a * h1:(a + 1) * h1] += a_b * sb * hBm.T @ target_b[:, a]
             M[3 * h1:, 3 * h1:] += a_d * sd * sd * hDm.T @ hDm
             rhs[3 * h1:] += a_d * sd * hDm.T @ d.thickness_target.double()

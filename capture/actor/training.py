@@ -15,6 +15,7 @@ import hashlib
 import json
 import platform
 import shutil
+import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -302,22 +303,49 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     return out
 
 
-class TrainingProgress:
-    """A rich progress bar: iteration, loss, current mean error (mm) and time left."""
+def progress_line(iteration: int, total: int, loss: float, err_mm: float, elapsed_s: float, left_s: float | None) -> str:
+    """One plain progress line: iteration, loss, current error (mm), time so far and time left."""
+    left = "estimating" if left_s is None else f"about {_minutes(left_s)} left"
+    err = "not measured yet" if not np.isfinite(err_mm) else f"{err_mm:.4f} mm"
+    return (f"training: iteration {iteration}/{total} ({100 * iteration / max(total, 1):.0f} %), loss {loss:.3e}, "
+            f"error {err}, {_minutes(elapsed_s)} elapsed, {left}")
 
-    def __init__(self, enabled: bool = True):
+
+def _minutes(seconds: float) -> str:
+    return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
+
+
+def time_left(done_here: int, seconds_here: float, remaining: int) -> float | None:
+    """Seconds left for ``remaining`` iterations at the rate of this session (None before any step)."""
+    if done_here <= 0 or seconds_here <= 0:
+        return None
+    return remaining * seconds_here / done_here
+
+
+class TrainingProgress:
+    """Training progress: iteration, loss, current mean error (mm), time elapsed and time left.
+
+    Enabled: a rich progress bar. Disabled (``--no-progress``, logs, batch jobs): one plain line
+    every ``interval_s`` seconds and one at the end, through ``write`` (default: standard error).
+    """
+
+    def __init__(self, enabled: bool = True, interval_s: float = 60.0, write: Callable[[str], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         self.enabled = enabled
+        self.interval_s = interval_s
+        self.write = write or (lambda line: print(line, file=sys.stderr, flush=True))
+        self.clock = clock
 
     @contextlib.contextmanager
     def session(self, total: int, start: int):
         if not self.enabled:
-            yield lambda *a: None
+            yield self._line_updater(total, start)
             return
         from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                    TimeRemainingColumn)
 
         columns = [TextColumn("training"), BarColumn(), MofNCompleteColumn(),
-                   TextColumn("loss {task.fields[loss]:.3e}  error {task.fields[err]:.3f} mm"),
+                   TextColumn("loss {task.fields[loss]:.3e}  error {task.fields[err]:.4f} mm"),
                    TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn()]
         with Progress(*columns, transient=False) as bar:
             task = bar.add_task("train", total=total, completed=start, loss=float("nan"), err=float("nan"))
@@ -326,3 +354,17 @@ class TrainingProgress:
                 bar.update(task, completed=iteration, loss=loss, err=err)
 
             yield update
+
+    def _line_updater(self, total: int, start: int) -> Callable[[int, float, float], None]:
+        t0 = self.clock()
+        last = [t0]
+
+        def update(iteration: int, loss: float, err: float) -> None:
+            now = self.clock()
+            if now - last[0] < self.interval_s and iteration < total:
+                return
+            last[0] = now
+            self.write(progress_line(iteration, total, loss, err, now - t0,
+                                     time_left(iteration - start, now - t0, total - iteration)))
+
+        return update
