@@ -87,10 +87,11 @@ class TrainSettings:
 
 
 PRESETS: dict[str, TrainSettings] = {
-    "default": TrainSettings(),
+    "default": TrainSettings(iterations=1800, points_per_step=2048, importance=0.5, importance_reweight=False,
+                             expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True),
     "paper": TrainSettings(iterations=10_000, lr=2e-3, lr_final_fraction=1.0, width=256, depth=3,
                            first_omega_0=30.0, hidden_omega_0=30.0, expression_solve_every=0, anatomy_solve=False,
-                           jaw_skinning_prior=0.0),
+                           jaw_skinning_prior=0.0, points_per_step=0, importance=0.0, solve_at_start=False),
 }
 
 

@@ -13,6 +13,7 @@ import contextlib
 import datetime as dt
 import hashlib
 import json
+import os
 import platform
 import shutil
 import sys
@@ -164,6 +165,14 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
     return data, extras
 
 
+def _load_average() -> tuple[float, ...]:
+    """The system's 1/5/15-minute load averages (empty where the OS has none): timings depend on them."""
+    try:
+        return tuple(round(v, 2) for v in os.getloadavg())
+    except (AttributeError, OSError):
+        return ()
+
+
 def _evaluation_metadata(ev: Evaluation, names: list[str]) -> dict:
     return {
         "per_shape": {n: {"mean_mm": m, "max_mm": x} for n, m, x in zip(names, ev.shape_mean_mm, ev.shape_max_mm)},
@@ -222,10 +231,11 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
 
     config = model_config_for(data, settings, extras["jaw_pivot"])
     trainer = ActorTrainer(data, settings, config, device=options.device)
-    elapsed_before = 0.0
+    elapsed_before = cpu_before = 0.0
     if state is not None:
         trainer.load_state_dict(state["trainer"])
         elapsed_before = float(state.get("train_seconds", 0.0))
+        cpu_before = float(state.get("train_cpu_seconds", 0.0))
         report(f"resuming training of '{options.actor}' at iteration {trainer.iteration} of {settings.iterations}")
     train_dir.mkdir(parents=True, exist_ok=True)
     write_json(train_dir / "settings.json", {**resolved, "fingerprint": fingerprint,
@@ -233,10 +243,11 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
 
     def save_checkpoint(seconds: float) -> None:
         with atomic_path(ckpt_path) as tmp:
-            torch.save({"fingerprint": fingerprint, "trainer": trainer.state_dict(), "train_seconds": seconds}, tmp)
+            torch.save({"fingerprint": fingerprint, "trainer": trainer.state_dict(), "train_seconds": seconds,
+                        "train_cpu_seconds": cpu_before + time.process_time() - cpu0}, tmp)
 
     log_path = train_dir / "log.jsonl"
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     last_ckpt = t0
     ev = None
     progress = progress or TrainingProgress(enabled=False)
@@ -262,6 +273,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
             raise Interrupted(f"training of '{options.actor}' interrupted at iteration {trainer.iteration}; "
                               f"checkpoint saved in {train_dir}: run the same command to resume") from None
     train_seconds = elapsed_before + time.perf_counter() - t0
+    train_cpu_seconds = cpu_before + time.process_time() - cpu0
     ev = trainer.evaluate()
 
     R = rot6d_to_matrix(trainer.jaw_rot6d.detach()).cpu().numpy()
@@ -279,8 +291,9 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                    "jaw": str(options.jaw) if options.jaw else None, "bones_estimated": extras["bones_estimated"]},
         "model": config.to_dict(),
         "training": {"preset": options.preset, "settings": settings.to_dict(), "iterations": trainer.iteration,
-                     "train_seconds": train_seconds, "prepare_seconds": prep_seconds, "device": options.device,
-                     "torch_threads": torch.get_num_threads()},
+                     "train_seconds": train_seconds, "train_cpu_seconds": train_cpu_seconds,
+                     "prepare_seconds": prep_seconds, "device": options.device,
+                     "torch_threads": torch.get_num_threads(), "load_average": list(_load_average())},
         "quality": _evaluation_metadata(ev, shapes.names),
         "anatomy_constraints": {"count": int(len(con.thickness)), "coverage": float(con.coverage),
                                 "candidates": int(con.n_candidates),
