@@ -57,9 +57,7 @@ def worker(actor: str, preset: str, kind: str, iterations: int, width: int, thre
 
     from capture.cli import main
 
-    if threads:
-        torch.set_num_threads(threads)
-    args = ["actor", "train", actor, "--preset", preset, "--overwrite", "--no-progress"]
+    args = ["actor", "train", actor, "--preset", preset, "--overwrite", "--no-progress", "--threads", str(threads)]
     if kind == "estimated":
         from capture.actor.sample import sample_shapes_dir
 
@@ -81,7 +79,7 @@ def worker(actor: str, preset: str, kind: str, iterations: int, width: int, thre
     rc = main(args)
     wall, cpu = time.perf_counter() - t, time.process_time() - cpu
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(json.dumps({"rc": rc, "wall_s": wall, "cpu_s": cpu, "peak_mb": peak_mb, "threads": torch.get_num_threads(),
+    print(json.dumps({"rc": rc, "wall_s": wall, "cpu_s": cpu, "peak_mb": peak_mb, "threads": threads or torch.get_num_threads(),
                       "load_before": load0, "load_after": os.getloadavg()}))
 
 
@@ -141,7 +139,7 @@ def main() -> None:
     ap.add_argument("--actors", default="fitted", help=f"comma-separated, of {', '.join(ACTORS)}")
     ap.add_argument("--paper-iterations", type=int, default=600)
     ap.add_argument("--iterations", type=int, default=None, help="override the default preset's iterations")
-    ap.add_argument("--threads", type=int, default=0, help="torch threads per run (0 = torch's default)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads per run (0 = torch's default)")
     ap.add_argument("--out", type=Path, default=None, help="where the actors go (default: a temporary folder)")
     ap.add_argument("--only", choices=["default", "paper"], default=None)
     args = ap.parse_args()

@@ -56,6 +56,7 @@ class TrainOptions:
     forehead: Path | None = None         # vertex index list
     trusted: Path | None = None          # vertex index list for the constraints
     device: str = "cpu"
+    threads: int = 0                     # torch CPU threads while training (0 = leave torch's setting)
     overwrite: bool = False
     checkpoint_seconds: float = 60.0
     eval_every: int = 50
@@ -165,6 +166,14 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
     return data, extras
 
 
+@contextlib.contextmanager
+def _restore_threads(n: int):
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
+
+
 def _load_average() -> tuple[float, ...]:
     """The system's 1/5/15-minute load averages (empty where the OS has none): timings depend on them."""
     try:
@@ -191,6 +200,8 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
             raise CaptureError(f"actor '{options.actor}' already exists at {out}; pass --overwrite to retrain it")
         remove_actor(out)
     settings = resolve_settings(options.preset, options.overrides)
+    if options.threads < 0:
+        raise CaptureError(f"--threads must be 1 or more, or 0 for torch's default (got {options.threads})")
     shapes = load_shape_dir(options.shapes, options.neutral, options.units)
     if options.device != "cpu" and not torch.cuda.is_available() and options.device.startswith("cuda"):
         raise CaptureError(f"device '{options.device}' is not available on this machine; use --device cpu")
@@ -251,7 +262,12 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     last_ckpt = t0
     ev = None
     progress = progress or TrainingProgress(enabled=False)
-    with sigterm_as_interrupt(), progress.session(settings.iterations, trainer.iteration) as update:
+    threads_before = torch.get_num_threads()
+    if options.threads:
+        torch.set_num_threads(options.threads)
+    threads_used = torch.get_num_threads()
+    with sigterm_as_interrupt(), _restore_threads(threads_before), \
+            progress.session(settings.iterations, trainer.iteration) as update:
         try:
             while trainer.iteration < settings.iterations:
                 terms = trainer.step()
@@ -293,7 +309,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
         "training": {"preset": options.preset, "settings": settings.to_dict(), "iterations": trainer.iteration,
                      "train_seconds": train_seconds, "train_cpu_seconds": train_cpu_seconds,
                      "prepare_seconds": prep_seconds, "device": options.device,
-                     "torch_threads": torch.get_num_threads(), "load_average": list(_load_average())},
+                     "torch_threads": threads_used, "load_average": list(_load_average())},
         "quality": _evaluation_metadata(ev, shapes.names),
         "anatomy_constraints": {"count": int(len(con.thickness)), "coverage": float(con.coverage),
                                 "candidates": int(con.n_candidates),
