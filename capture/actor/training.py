@@ -278,7 +278,9 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                     ev = trainer.evaluate()
                     with open(log_path, "a") as fh:
                         fh.write(json.dumps({"iteration": trainer.iteration, "seconds": elapsed_before + time.perf_counter() - t0,
-                                             "mean_mm": ev.mean_mm, **terms}) + "\n")
+                                             "cpu_seconds": cpu_before + time.process_time() - cpu0,
+                                             "mean_mm": ev.mean_mm, "worst_shape_mm": max(ev.shape_mean_mm),
+                                             "max_mm": max(ev.shape_max_mm), **terms}) + "\n")
                 update(trainer.iteration, terms["total"], ev.mean_mm if ev else float("nan"))
                 now = time.perf_counter()
                 if now - last_ckpt > options.checkpoint_seconds:
