@@ -129,11 +129,13 @@ def report(preset: str, kind: str, stats: dict, full_iterations: int | None = No
               f"(error above is after {tr['iterations']} iterations)")
 
 
-def main() -> None:
-    if len(sys.argv) > 1 and sys.argv[1] == "--worker":
-        _, _, actor, preset, kind, iterations, width, threads = sys.argv
+def main(argv: list[str] | None = None) -> dict:
+    """Run the benchmark; returns ``{"out": folder, "runs": [{"preset", "kind", stats + actor metadata}]}``."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "--worker":
+        _, actor, preset, kind, iterations, width, threads = argv
         worker(actor, preset, kind, int(iterations), int(width), int(threads))
-        return
+        return {}
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="a few steps of each preset, narrow nets (CI check)")
     ap.add_argument("--actors", default="fitted", help=f"comma-separated, of {', '.join(ACTORS)}")
@@ -142,22 +144,26 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run (0 = torch's default)")
     ap.add_argument("--out", type=Path, default=None, help="where the actors go (default: a temporary folder)")
     ap.add_argument("--only", choices=["default", "paper"], default=None)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     kinds = [k.strip() for k in args.actors.split(",") if k.strip()]
     bad = [k for k in kinds if k not in ACTORS]
     if bad:
         sys.exit(f"unknown actor(s) {bad}: use {', '.join(ACTORS)}")
     out = args.out or Path(tempfile.mkdtemp(prefix="bench_actor_"))
     print(f"actors in {out}")
+    runs = []
     for kind in kinds:
         if args.only != "paper":
             stats = run("default", kind, out, 20 if args.quick else args.iterations, 32 if args.quick else None,
                         args.threads)
             report("default", kind, stats)
+            runs.append({"preset": "default", "kind": kind, **stats})
         if args.only != "default":
             stats = run("paper", kind, out, 5 if args.quick else args.paper_iterations, 32 if args.quick else None,
                         args.threads)
             report("paper", kind, stats, None if args.quick else 10_000)
+            runs.append({"preset": "paper", "kind": kind, **stats})
+    return {"out": str(out), "runs": runs}
 
 
 if __name__ == "__main__":
