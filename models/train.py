@@ -57,6 +57,10 @@ class TrainSettings:
     importance_reweight: bool = True
     """Weight each sampled point by ``1 / (V q)`` (q its probability) so that the per-point means
     of the losses stay unbiased estimates of the paper's means over all points."""
+    freeze_solved_layers: bool = False
+    """Leave the output layers that the closed-form solves set (B, D when ``anatomy_solve``, E) out
+    of Adam once they have been solved: between solves they stay at their least-squares optimum
+    for the features of the last solve instead of following the noisy sampled gradient."""
     solve_at_start: bool = False
     """Solve E's output layer once before the first step: the expression field then starts at the
     least-squares fit of the shape deltas (what LBS of the initial neutral leaves). (B and D wait
@@ -209,6 +213,7 @@ class ActorTrainer:
         self._init_jaw()
         self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
         self.iteration = 0
+        self._solved: set[torch.nn.Parameter] = set()  # output layers set by a closed-form solve
         self.vertex_error: torch.Tensor | None = None
         """(V,) per-vertex RMS training error (mm) at the last closed-form solve (importance sampling)."""
 
@@ -315,6 +320,9 @@ class ActorTrainer:
         terms = self.losses(self._sample())
         self.optimizer.zero_grad(set_to_none=True)
         terms["total"].backward()
+        if self.settings.freeze_solved_layers:
+            for p in self._solved:
+                p.grad = None  # Adam skips parameters without a gradient
         self.optimizer.step()
         self.scheduler.step()
         self.iteration += 1
@@ -378,6 +386,7 @@ class ActorTrainer:
         # Adam's running moments belong to the old weights; restart them for this layer.
         for p in (model.E.output.weight, model.E.output.bias):
             self.optimizer.state.pop(p, None)
+            self._solved.add(p)
 
     @torch.no_grad()
     def solve_anatomy(self, features: dict[str, torch.Tensor] | None = None) -> None:
@@ -458,6 +467,7 @@ class ActorTrainer:
             layer.bias.copy_(W[:, -1].to(layer.bias.dtype))
             for p in (layer.weight, layer.bias):
                 self.optimizer.state.pop(p, None)
+                self._solved.add(p)
 
     @torch.no_grad()
     def evaluate(self) -> Evaluation:
@@ -486,6 +496,7 @@ class ActorTrainer:
             "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
             "generator": self.generator.get_state(), "iteration": self.iteration,
             "vertex_error": self.vertex_error,
+            "solved_layers": sorted(n for n, p in self.model.named_parameters() if p in self._solved),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -498,5 +509,7 @@ class ActorTrainer:
         self.generator.set_state(state["generator"])
         self.iteration = int(state["iteration"])
         self.vertex_error = state.get("vertex_error")
+        solved = set(state.get("solved_layers", ()))
+        self._solved = {p for n, p in self.model.named_parameters() if n in solved}
 
 
