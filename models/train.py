@@ -18,7 +18,10 @@ Presets (:data:`PRESETS`):
   every 10 steps, B's and D's output layers jointly every 50 (``solve_anatomy``). Each Adam step
   sees 2,048 template points (and the same share of the constrained points), half of them drawn
   where the per-vertex error of the last solve is large (the mouth and inner lips) - the
-  networks' time goes where the error is; the solves always use every point.
+  networks' time goes where the error is; the solves always use every point. Once solved, those
+  output layers are left out of Adam (``freeze_solved_layers``): a fresh Adam state moves every
+  weight of a just-solved layer by about lr in its first step, which took the mean error from
+  0.24 to 0.98 mm within 4 steps of a solve.
   Each network runs only on the points its losses need (:meth:`ActorTrainer.losses`).
 """
 
@@ -98,7 +101,8 @@ class TrainSettings:
 
 PRESETS: dict[str, TrainSettings] = {
     "default": TrainSettings(iterations=1800, points_per_step=2048, importance=0.5, importance_reweight=False,
-                             expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True),
+                             expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True,
+                             freeze_solved_layers=True),
     "paper": TrainSettings(iterations=10_000, lr=2e-3, lr_final_fraction=1.0, width=256, depth=3,
                            first_omega_0=30.0, hidden_omega_0=30.0, expression_solve_every=0, anatomy_solve=False,
                            jaw_skinning_prior=0.0, points_per_step=0, importance=0.0, solve_at_start=False),
