@@ -104,3 +104,20 @@ def test_no_progress_prints_a_line_per_minute_with_time_left():
     assert "iteration 1000/1000" in lines[-1] and "0 s left" in lines[-1]
     assert time_left(0, 0.0, 10) is None
     assert "estimating" in progress_line(0, 10, float("nan"), float("nan"), 0.0, None)
+
+
+def test_solved_output_layers_stay_out_of_adam(trainer):
+    """After a closed-form solve, Adam steps move the hidden layers but not the solved output layers."""
+    trainer.step()  # (the fixture ends on a solve step)
+    assert trainer.settings.freeze_solved_layers and trainer.iteration % trainer.settings.expression_solve_every
+    solved = {n: p.detach().clone() for n, p in trainer.model.named_parameters() if n.endswith(("output.weight", "output.bias"))}
+    hidden = trainer.model.E.layers[1].linear.weight.detach().clone()
+    trainer.step()
+    for name in ("B.output.weight", "D.output.bias", "E.output.weight", "E.output.bias"):
+        torch.testing.assert_close(dict(trainer.model.named_parameters())[name].detach(), solved[name], rtol=0, atol=0)
+    # N and K have no closed-form solve: Adam still trains their output layers, and every hidden layer.
+    assert not torch.equal(trainer.model.N.output.weight.detach(), solved["N.output.weight"])
+    assert not torch.equal(trainer.model.E.layers[1].linear.weight.detach(), hidden)
+    # The set of frozen layers survives a checkpoint.
+    state = trainer.state_dict()
+    assert "E.output.weight" in state["solved_layers"] and "N.output.weight" not in state["solved_layers"]
