@@ -73,7 +73,10 @@ class AIMConfig:
 
 @dataclass
 class Anatomy:
-    """Model outputs at P template points (all tensors share the batch shape ``*``)."""
+    """Model outputs at P template points (all tensors share the batch shape ``*``).
+
+    From :meth:`AnatomicalFaceModel.assemble` with only some networks, the other fields are None.
+    """
 
     bone: torch.Tensor          # (*, P, 3) mm
     thickness: torch.Tensor     # (*, P) mm
