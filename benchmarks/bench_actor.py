@@ -13,8 +13,9 @@ Actors (``--actors``, comma separated):
 The paper's 1e4 iterations take hours on 2 CPU cores, so by default the paper preset runs
 ``--paper-iterations`` steps and its full-length time is extrapolated (and labelled as such).
 
-    python benchmarks/bench_actor.py --threads 1                  # default preset, fitted, + paper 600 steps
-    python benchmarks/bench_actor.py --actors fitted,estimated,sub1 --only default --threads 1
+    python benchmarks/bench_actor.py                              # fast preset, fitted, + paper 600 steps
+    python benchmarks/bench_actor.py --actors fitted,estimated,sub1 --presets fast
+    python benchmarks/bench_actor.py --presets default            # the accurate default (~55 min CPU)
     python benchmarks/bench_actor.py --quick                      # checks that it runs (CI): a few steps
 """
 
@@ -140,10 +141,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--quick", action="store_true", help="a few steps of each preset, narrow nets (CI check)")
     ap.add_argument("--actors", default="fitted", help=f"comma-separated, of {', '.join(ACTORS)}")
     ap.add_argument("--paper-iterations", type=int, default=600)
-    ap.add_argument("--iterations", type=int, default=None, help="override the default preset's iterations")
+    ap.add_argument("--iterations", type=int, default=None, help="override the iterations of the default/fast presets")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run (0 = torch's default)")
     ap.add_argument("--out", type=Path, default=None, help="where the actors go (default: a temporary folder)")
-    ap.add_argument("--only", choices=["default", "paper"], default=None)
+    ap.add_argument("--presets", default="fast,paper", help="comma-separated, of fast, default, paper")
     args = ap.parse_args(argv)
     kinds = [k.strip() for k in args.actors.split(",") if k.strip()]
     bad = [k for k in kinds if k not in ACTORS]
@@ -153,16 +154,14 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"actors in {out}")
     runs = []
     for kind in kinds:
-        if args.only != "paper":
-            stats = run("default", kind, out, 20 if args.quick else args.iterations, 32 if args.quick else None,
-                        args.threads)
-            report("default", kind, stats)
-            runs.append({"preset": "default", "kind": kind, **stats})
-        if args.only != "default":
-            stats = run("paper", kind, out, 5 if args.quick else args.paper_iterations, 32 if args.quick else None,
-                        args.threads)
-            report("paper", kind, stats, None if args.quick else 10_000)
-            runs.append({"preset": "paper", "kind": kind, **stats})
+        for preset in [p.strip() for p in args.presets.split(",") if p.strip()]:
+            if preset == "paper":
+                iters, full = (5 if args.quick else args.paper_iterations), (None if args.quick else 10_000)
+            else:
+                iters, full = (20 if args.quick else args.iterations), None
+            stats = run(preset, kind, out, iters, 32 if args.quick else None, args.threads)
+            report(preset, kind, stats, full)
+            runs.append({"preset": preset, "kind": kind, **stats})
     return {"out": str(out), "runs": runs}
 
 

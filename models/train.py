@@ -8,20 +8,21 @@ Presets (:data:`PRESETS`):
 
 * ``paper``: the paper's settings - SIREN omega_0 = 30 in every layer, width 256, Adam lr 2e-3
   held constant for 1e4 iterations, every point in every step.
-* ``default``: the project's - the same five networks and losses, reached faster:
-  omega_0 = 30 on the first layer only (stable at lr 2e-3, see :mod:`models.siren`), a cosine
-  learning-rate decay to 1 % of the start (a constant rate keeps the error spiky), 1,800 steps.
-  Closed-form solves of linear output layers (``expression_solve_every``, ``anatomy_solve_every``):
-  with everything else fixed the skin loss is quadratic in E's output layer, so its least-squares
-  optimum is one small linear solve (width x width) instead of thousands of Adam steps; E is
-  solved before the first step (the expression field starts at the fit of the shape deltas) and
-  every 10 steps, B's and D's output layers jointly every 50 (``solve_anatomy``). Each Adam step
-  sees 2,048 template points (and the same share of the constrained points), half of them drawn
-  where the per-vertex error of the last solve is large (the mouth and inner lips) - the
-  networks' time goes where the error is; the solves always use every point. Once solved, those
-  output layers are left out of Adam (``freeze_solved_layers``): a fresh Adam state moves every
-  weight of a just-solved layer by about lr in its first step, which took the mean error from
-  0.24 to 0.98 mm within 4 steps of a solve.
+* ``default``: the project's - omega_0 = 30 on the first layer only (stable at lr 2e-3, see
+  :mod:`models.siren`), a cosine learning-rate decay to 1 % of the start (a constant rate keeps
+  the error spiky), 3,000 steps on every point, and a closed-form solve of the linear output
+  layers of E, B and D every 100 steps (``expression_solve_every``): with everything else fixed
+  the skin loss is quadratic in E's output layer, so its least-squares optimum is one small
+  linear solve (width x width) instead of thousands of Adam steps.
+* ``fast``: the same five networks and losses in 1,800 cheaper steps (issue 13; about 3x less
+  CPU per unit of error early on, but it ends at a higher error than ``default``, BENCHMARKS.md):
+  E is solved before the first step (the expression field starts at the fit of the shape deltas)
+  and every 10 steps, B's and D's output layers jointly every 50 (``solve_anatomy``); each Adam
+  step sees 2,048 template points (and the same share of the constrained points), half of them
+  drawn where the per-vertex error of the last solve is large; the solves always use every
+  point. Once solved, those output layers are left out of Adam (``freeze_solved_layers``): a
+  fresh Adam state moves every weight of a just-solved layer by about lr in its first step,
+  which took the mean error from 0.24 to 0.98 mm within 4 steps of a solve.
   Each network runs only on the points its losses need (:meth:`ActorTrainer.losses`).
 """
 
@@ -100,9 +101,10 @@ class TrainSettings:
 
 
 PRESETS: dict[str, TrainSettings] = {
-    "default": TrainSettings(iterations=1800, points_per_step=2048, importance=0.5, importance_reweight=False,
-                             expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True,
-                             freeze_solved_layers=True),
+    "default": TrainSettings(),
+    "fast": TrainSettings(iterations=1800, points_per_step=2048, importance=0.5, importance_reweight=False,
+                          expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True,
+                          freeze_solved_layers=True),
     "paper": TrainSettings(iterations=10_000, lr=2e-3, lr_final_fraction=1.0, width=256, depth=3,
                            first_omega_0=30.0, hidden_omega_0=30.0, expression_solve_every=0, anatomy_solve=False,
                            jaw_skinning_prior=0.0, points_per_step=0, importance=0.0, solve_at_start=False),

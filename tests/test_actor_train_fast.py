@@ -21,7 +21,7 @@ def trainer(tmp_path_factory):
     shapes, skull, jaw = write_tiny_actor_inputs(root)
     options = TrainOptions(actor="x", shapes=shapes, skull=skull, jaw=jaw)
     data, extras = prepare(options, load_shape_dir(shapes), report=lambda m: None)
-    settings = resolve_settings("default", dict(width=32, iterations=100, points_per_step=400, importance=0.5,
+    settings = resolve_settings("fast", dict(width=32, iterations=100, points_per_step=400, importance=0.5,
                                                 importance_reweight=True))
     tr = ActorTrainer(data, settings, model_config_for(data, settings, extras["jaw_pivot"]))
     for _ in range(10):  # away from the initialisation
