@@ -73,7 +73,10 @@ class AIMConfig:
 
 @dataclass
 class Anatomy:
-    """Model outputs at P template points (all tensors share the batch shape ``*``)."""
+    """Model outputs at P template points (all tensors share the batch shape ``*``).
+
+    From :meth:`AnatomicalFaceModel.assemble` with only some networks, the other fields are None.
+    """
 
     bone: torch.Tensor          # (*, P, 3) mm
     thickness: torch.Tensor     # (*, P) mm
@@ -84,7 +87,8 @@ class Anatomy:
 
     def slice(self, start: int, stop: int) -> "Anatomy":
         """The outputs of points ``start:stop`` (flat evaluation, batch shape ``()``)."""
-        return Anatomy(*(getattr(self, f)[start:stop] for f in self.__dataclass_fields__))
+        return Anatomy(*(None if getattr(self, f) is None else getattr(self, f)[start:stop]
+                         for f in self.__dataclass_fields__))
 
 
 class AnatomicalFaceModel(nn.Module):
@@ -112,19 +116,37 @@ class AnatomicalFaceModel(nn.Module):
         """Bone points ``(*, P, 3)`` mm at template points ``(*, P, 3)``."""
         return c + self.config.bone_offset_mm * self.B(self.normalize(c))
 
+    NETWORKS = ("B", "D", "N", "K", "E")
+
     def forward(self, c: torch.Tensor) -> Anatomy:
         """Evaluate all five networks at template points ``c`` ``(*, P, 3)`` mm."""
         check_shape(c, "*,P,3", "template points")
         x = self.normalize(c)
-        bone = c + self.config.bone_offset_mm * self.B(x)
-        thickness = self.config.thickness_mm * self.D(x).squeeze(-1)
-        for edit in self.thickness_edits:  # d' = d * (1 + (S - 1) w(c)), composed
-            thickness = thickness * edit(c)
-        normal = torch.nn.functional.normalize(self.N(x), dim=-1, eps=1e-8)
-        neutral = bone + thickness.unsqueeze(-1) * normal
-        k = self.K(x).squeeze(-1)
-        e = self.config.expression_mm * self.E(x)
-        e = e.reshape(*e.shape[:-1], self.config.n_expressions, 3)
+        return self.assemble(c, {name: getattr(self, name)(x) for name in self.NETWORKS})
+
+    def assemble(self, c: torch.Tensor, raw: dict[str, torch.Tensor]) -> Anatomy:
+        """The model outputs at points ``c`` from the networks' raw outputs ``raw[name]`` ``(*, P, out)``.
+
+        ``forward`` is ``assemble(c, {n: net_n(normalize(c))})``; a trainer that evaluates only some
+        networks at some points (or reuses their sine features) passes those, and the outputs of
+        the missing networks are None (the neutral needs B, D and N).
+        """
+        bone = thickness = normal = neutral = k = e = None
+        if "B" in raw:
+            bone = c + self.config.bone_offset_mm * raw["B"]
+        if "D" in raw:
+            thickness = self.config.thickness_mm * raw["D"].squeeze(-1)
+            for edit in self.thickness_edits:  # d' = d * (1 + (S - 1) w(c)), composed
+                thickness = thickness * edit(c)
+        if "N" in raw:
+            normal = torch.nn.functional.normalize(raw["N"], dim=-1, eps=1e-8)
+        if bone is not None and thickness is not None and normal is not None:
+            neutral = bone + thickness.unsqueeze(-1) * normal
+        if "K" in raw:
+            k = raw["K"].squeeze(-1)
+        if "E" in raw:
+            e = self.config.expression_mm * raw["E"]
+            e = e.reshape(*e.shape[:-1], self.config.n_expressions, 3)
         return Anatomy(bone, thickness, normal, neutral, k, e)
 
     def shape(self, anatomy: Anatomy, jaw_rot6d: torch.Tensor, jaw_t: torch.Tensor,

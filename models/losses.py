@@ -35,10 +35,22 @@ class LossWeights:
         return asdict(self)
 
 
-def skin_position_loss(pred: torch.Tensor, target: torch.Tensor, unit: float) -> torch.Tensor:
-    """``mean ||s~ - s||^2`` over shapes and points; pred, target ``(S, P, 3)`` mm."""
+def _point_mean(values: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+    """Mean over the last axis (points), each point counted ``weights[p]`` times when given.
+
+    With points drawn at random with probability ``q_p`` and ``weights = 1 / (V q_p)`` this is an
+    unbiased estimate of the mean over all V points (importance sampling, :mod:`models.train`).
+    """
+    if weights is None:
+        return values.mean()
+    return (values * weights).mean()
+
+
+def skin_position_loss(pred: torch.Tensor, target: torch.Tensor, unit: float,
+                       weights: torch.Tensor | None = None) -> torch.Tensor:
+    """``mean ||s~ - s||^2`` over shapes and points; pred, target ``(S, P, 3)`` mm; weights ``(P,)``."""
     check_shapes({"pred": (pred, "*,P,3"), "target": (target, "*,P,3")})
-    return ((pred - target) / unit).square().sum(-1).mean()
+    return _point_mean(((pred - target) / unit).square().sum(-1), weights)
 
 
 def anatomy_losses(bone: torch.Tensor, thickness: torch.Tensor, normal: torch.Tensor,
@@ -61,15 +73,16 @@ def anatomy_losses(bone: torch.Tensor, thickness: torch.Tensor, normal: torch.Te
     return lb, ld, ln
 
 
-def thickness_regularizer(thickness: torch.Tensor, unit: float) -> torch.Tensor:
-    """``mean d^2``: keeps the tissue thin where nothing else asks for thickness."""
-    return (thickness / unit).square().mean()
+def thickness_regularizer(thickness: torch.Tensor, unit: float, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """``mean d^2``: keeps the tissue thin where nothing else asks for thickness; thickness ``(P,)``."""
+    return _point_mean((thickness / unit).square(), weights)
 
 
-def symmetry_loss(bone_of_reflected: torch.Tensor, reflected_bone: torch.Tensor, unit: float) -> torch.Tensor:
+def symmetry_loss(bone_of_reflected: torch.Tensor, reflected_bone: torch.Tensor, unit: float,
+                  weights: torch.Tensor | None = None) -> torch.Tensor:
     """``mean ||B(R(c)) - R(B(c))||^2``; both ``(P, 3)`` mm."""
     check_shapes({"B(R(c))": (bone_of_reflected, "P,3"), "R(B(c))": (reflected_bone, "P,3")})
-    return ((bone_of_reflected - reflected_bone) / unit).square().sum(-1).mean()
+    return _point_mean(((bone_of_reflected - reflected_bone) / unit).square().sum(-1), weights)
 
 
 def skinning_weight_loss(skin_weight_forehead: torch.Tensor) -> torch.Tensor:

@@ -41,8 +41,15 @@ class SineLayer(nn.Module):
             self.linear.bias.uniform_(-1.0 / math.sqrt(in_features), 1.0 / math.sqrt(in_features))
 
     def preactivation(self, x: torch.Tensor) -> torch.Tensor:
-        """``omega_0 * (W x + b)``, the argument of the sine."""
-        return self.omega_0 * self.linear(x)
+        """``omega_0 * (W x + b)``, the argument of the sine.
+
+        Computed as ``(omega_0 W) x + omega_0 b``: the factor scales the (small) weights instead of
+        the (points x width) product, one elementwise pass less forward and backward; the function
+        and the gradients with respect to W and b are the same.
+        """
+        if self.omega_0 == 1.0:
+            return self.linear(x)
+        return torch.nn.functional.linear(x, self.linear.weight * self.omega_0, self.linear.bias * self.omega_0)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.sin(self.preactivation(x))

@@ -10,10 +10,20 @@ Presets (:data:`PRESETS`):
   held constant for 1e4 iterations, every point in every step.
 * ``default``: the project's - omega_0 = 30 on the first layer only (stable at lr 2e-3, see
   :mod:`models.siren`), a cosine learning-rate decay to 1 % of the start (a constant rate keeps
-  the error spiky), and a periodic closed-form solve of the expression network's linear output
-  layer (``expression_solve_every``): with everything else fixed, the skin loss is quadratic in
-  that layer, so its least-squares optimum is one small linear solve (width x width) instead of
-  thousands of Adam steps. Its regularised normal equations use the same skin loss as Adam.
+  the error spiky), 3,000 steps on every point, and a closed-form solve of the linear output
+  layers of E, B and D every 100 steps (``expression_solve_every``): with everything else fixed
+  the skin loss is quadratic in E's output layer, so its least-squares optimum is one small
+  linear solve (width x width) instead of thousands of Adam steps.
+* ``fast``: the same five networks and losses in 1,800 cheaper steps (issue 13; about 3x less
+  CPU per unit of error early on, but it ends at a higher error than ``default``, BENCHMARKS.md):
+  E is solved before the first step (the expression field starts at the fit of the shape deltas)
+  and every 10 steps, B's and D's output layers jointly every 50 (``solve_anatomy``); each Adam
+  step sees 2,048 template points (and the same share of the constrained points), half of them
+  drawn where the per-vertex error of the last solve is large; the solves always use every
+  point. Once solved, those output layers are left out of Adam (``freeze_solved_layers``): a
+  fresh Adam state moves every weight of a just-solved layer by about lr in its first step,
+  which took the mean error from 0.24 to 0.98 mm within 4 steps of a solve.
+  Each network runs only on the points its losses need (:meth:`ActorTrainer.losses`).
 """
 
 from __future__ import annotations
@@ -43,12 +53,29 @@ class TrainSettings:
     first_omega_0: float = 30.0
     hidden_omega_0: float = 1.0
     points_per_step: int = 0
-    """Template points sampled per step; 0 = all points every step."""
+    """Template points sampled per step; 0 = all points every step. The constrained points are
+    subsampled in the same proportion."""
+    importance: float = 0.0
+    """Fraction of the sampled points drawn in proportion to the current per-vertex error (known
+    from the last closed-form solve), the rest uniformly; 0 = uniform sampling."""
+    importance_reweight: bool = True
+    """Weight each sampled point by ``1 / (V q)`` (q its probability) so that the per-point means
+    of the losses stay unbiased estimates of the paper's means over all points."""
+    freeze_solved_layers: bool = False
+    """Leave the output layers that the closed-form solves set (B, D when ``anatomy_solve``, E) out
+    of Adam once they have been solved: between solves they stay at their least-squares optimum
+    for the features of the last solve instead of following the noisy sampled gradient."""
+    solve_at_start: bool = False
+    """Solve E's output layer once before the first step: the expression field then starts at the
+    least-squares fit of the shape deltas (what LBS of the initial neutral leaves). (B and D wait
+    for the first scheduled solve: with the random initial normals their joint solve is poor.)"""
     expression_solve_every: int = 100
     """Closed-form solve of E's output layer every this many steps (0 = never, as in the paper)."""
     expression_solve_ridge: float = 1e-6
     anatomy_solve: bool = True
-    """With each expression solve, also solve B's and D's output layers jointly (``solve_anatomy``)."""
+    """Also solve B's and D's output layers jointly (``solve_anatomy``)."""
+    anatomy_solve_every: int = 0
+    """Steps between the anatomy solves (0 = with every expression solve)."""
     expression_solve_start: float = 0.0
     """The first closed-form solve waits for this fraction of the iterations, so that the jaw
     (LBS) explains the rigid part of the motion before the expression basis absorbs it."""
@@ -75,9 +102,12 @@ class TrainSettings:
 
 PRESETS: dict[str, TrainSettings] = {
     "default": TrainSettings(),
+    "fast": TrainSettings(iterations=1800, points_per_step=2048, importance=0.5, importance_reweight=False,
+                          expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True,
+                          freeze_solved_layers=True),
     "paper": TrainSettings(iterations=10_000, lr=2e-3, lr_final_fraction=1.0, width=256, depth=3,
                            first_omega_0=30.0, hidden_omega_0=30.0, expression_solve_every=0, anatomy_solve=False,
-                           jaw_skinning_prior=0.0),
+                           jaw_skinning_prior=0.0, points_per_step=0, importance=0.0, solve_at_start=False),
 }
 
 
@@ -121,6 +151,15 @@ class TrainingData:
     def to(self, device) -> "TrainingData":
         moved = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
         return TrainingData(**moved)
+
+
+@dataclass
+class Sample:
+    """The points of one stochastic step."""
+
+    index: torch.Tensor                    # (P,) template vertex indices (may repeat)
+    weights: torch.Tensor | None           # (P,) importance weights 1 / (V q), None = uniform
+    constraint_index: torch.Tensor | None  # (M',) constrained points used, None = all
 
 
 @dataclass
@@ -180,6 +219,9 @@ class ActorTrainer:
         self._init_jaw()
         self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
         self.iteration = 0
+        self._solved: set[torch.nn.Parameter] = set()  # output layers set by a closed-form solve
+        self.vertex_error: torch.Tensor | None = None
+        """(V,) per-vertex RMS training error (mm) at the last closed-form solve (importance sampling)."""
 
     @torch.no_grad()
     def _init_jaw(self) -> None:
@@ -214,59 +256,113 @@ class ActorTrainer:
         progress = min(it / max(self.settings.iterations, 1), 1.0)
         return f + (1 - f) * 0.5 * (1 + math.cos(math.pi * progress))
 
-    def _sample(self) -> torch.Tensor | None:
-        n = self.data.template.shape[0]
-        p = self.settings.points_per_step
+    def _sample(self) -> Sample | None:
+        """The points of one step: all (None), or ``points_per_step`` of them (see TrainSettings)."""
+        s, n = self.settings, self.data.template.shape[0]
+        p = s.points_per_step
         if p <= 0 or p >= n:
             return None
-        return torch.randperm(n, generator=self.generator)[:p].to(self.device)
+        g = self.generator
+        weights = None
+        if s.importance > 0 and self.vertex_error is not None:
+            err = self.vertex_error.double().cpu()
+            prob = (1 - s.importance) / n + s.importance * err / err.sum().clamp_min(1e-12)
+            index = torch.multinomial(prob, p, replacement=True, generator=g)
+            if s.importance_reweight:
+                weights = (1.0 / (n * prob[index])).float().to(self.device)
+        else:
+            index = torch.randperm(n, generator=g)[:p]
+        m = self.data.constraint_points.shape[0]
+        mc = min(m, math.ceil(m * p / n))
+        con_index = torch.randperm(m, generator=g)[:mc] if mc < m else None
+        return Sample(index.to(self.device), weights, None if con_index is None else con_index.to(self.device))
 
-    def losses(self, index: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """Weighted loss terms on the points ``index`` (all when None); key ``total`` sums them."""
-        w, unit, d = self.settings.weights, self.settings.weights.length_unit_mm, self.data
+    def losses(self, sample: "Sample | None" = None) -> dict[str, torch.Tensor]:
+        """Weighted loss terms on the points of ``sample`` (all when None); key ``total`` sums them.
+
+        Each network runs only on the points its terms need: B, D and N on the skin and the
+        constrained points (B also on the mirrored skin for the symmetry term), K on the skin,
+        forehead and jaw points, E on the skin.
+        """
+        w, unit, d, model = self.settings.weights, self.settings.weights.length_unit_mm, self.data, self.model
+        index = None if sample is None else sample.index
+        pw = None if sample is None else sample.weights
         c = d.template if index is None else d.template[index]
         target = d.shapes if index is None else d.shapes[:, index]
-        m = c.shape[0]
-        # One pass of every network over skin, constrained and forehead points together.
-        pts = torch.cat([c, d.constraint_points, d.forehead_points, d.jaw_points], dim=0)
-        anatomy = self.model(pts)
-        skin = anatomy.slice(0, m)
-        pred = self.model.training_shapes(skin, self.jaw_rot6d, self.jaw_translation())
-        mc, mf = d.constraint_points.shape[0], d.forehead_points.shape[0]
-        lb, ld, ln = anatomy_losses(anatomy.bone[m:m + mc], anatomy.thickness[m:m + mc], anatomy.normal[m:m + mc],
-                                    d.bone_target, d.thickness_target, d.normal_target, unit)
+        ci = None if sample is None else sample.constraint_index
+        cc = d.constraint_points if ci is None else d.constraint_points[ci]
+        bone_t = d.bone_target if ci is None else d.bone_target[ci]
+        thick_t = d.thickness_target if ci is None else d.thickness_target[ci]
+        normal_t = d.normal_target if ci is None else d.normal_target[ci]
+        m, mc, mf = c.shape[0], cc.shape[0], d.forehead_points.shape[0]
+        reflected = d.reflect(c)
+        x = model.normalize(torch.cat([c, cc, reflected], dim=0))
+        out_b = model.B(x)
+        out_d, out_n = model.D(x[:m + mc]), model.N(x[:m + mc])
+        out_k = model.K(model.normalize(torch.cat([c, d.forehead_points, d.jaw_points], dim=0)))
+        skin = model.assemble(c, {"B": out_b[:m], "D": out_d[:m], "N": out_n[:m], "K": out_k[:m],
+                                  "E": model.E(x[:m])})
+        con = model.assemble(cc, {"B": out_b[m:m + mc], "D": out_d[m:], "N": out_n[m:]})
+        bone_of_reflected = model.assemble(reflected, {"B": out_b[m + mc:]}).bone
+        pred = model.training_shapes(skin, self.jaw_rot6d, self.jaw_translation())
+        lb, ld, ln = anatomy_losses(con.bone, con.thickness, con.normal, bone_t, thick_t, normal_t, unit)
         terms = {
-            "skin": w.skin * skin_position_loss(pred, target, unit),
+            "skin": w.skin * skin_position_loss(pred, target, unit, pw),
             "bone": w.bone * lb, "thickness": w.thickness * ld, "normal": w.normal * ln,
-            "thickness_reg": w.thickness_reg * thickness_regularizer(skin.thickness, unit),
-            "symmetry": w.symmetry * symmetry_loss(self.model.bone(d.reflect(c)), d.reflect(skin.bone), unit),
-            "forehead": w.forehead_skinning * skinning_weight_loss(anatomy.skin_weight[m + mc:m + mc + mf]),
+            "thickness_reg": w.thickness_reg * thickness_regularizer(skin.thickness, unit, pw),
+            "symmetry": w.symmetry * symmetry_loss(bone_of_reflected, d.reflect(skin.bone), unit, pw),
+            "forehead": w.forehead_skinning * skinning_weight_loss(out_k[m:m + mf].squeeze(-1)),
         }
         if self.settings.jaw_skinning_prior > 0:
-            terms["jaw"] = self.settings.jaw_skinning_prior * skinning_weight_loss(
-                anatomy.skin_weight[m + mc + mf:] - 1.0)
+            terms["jaw"] = self.settings.jaw_skinning_prior * skinning_weight_loss(out_k[m + mf:].squeeze(-1) - 1.0)
         terms["total"] = sum(terms.values())
         return terms
 
     def step(self) -> dict[str, float]:
-        """One Adam step (plus the closed-form expression solve when due); returns the loss terms."""
+        """One Adam step (plus the closed-form solves when due); returns the loss terms."""
         self.model.train()
+        if self.iteration == 0 and self.settings.solve_at_start:
+            self.solve_output_layers(anatomy=False)
         terms = self.losses(self._sample())
         self.optimizer.zero_grad(set_to_none=True)
         terms["total"].backward()
+        if self.settings.freeze_solved_layers:
+            for p in self._solved:
+                p.grad = None  # Adam skips parameters without a gradient
         self.optimizer.step()
         self.scheduler.step()
         self.iteration += 1
         every = self.settings.expression_solve_every
         start = self.settings.expression_solve_start * self.settings.iterations
         if every > 0 and self.iteration % every == 0 and self.iteration >= start:
-            if self.settings.anatomy_solve:
-                self.solve_anatomy()
-            self.solve_expressions()
+            every_anatomy = self.settings.anatomy_solve_every or every
+            self.solve_output_layers(anatomy=self.settings.anatomy_solve and self.iteration % every_anatomy == 0)
         return {k: float(v.detach()) for k, v in terms.items()}
 
     @torch.no_grad()
-    def solve_expressions(self) -> None:
+    def solve_output_layers(self, anatomy: bool = True) -> None:
+        """The closed-form solves: B's and D's output layers (when ``anatomy``), then E's.
+
+        The sine features of the five networks at the template points are computed once and
+        shared by both solves (the output layers are all that changes between them).
+        """
+        x = self.model.normalize(self.data.template)
+        features = {name: getattr(self.model, name).features(x) for name in self.model.NETWORKS}
+        if anatomy:
+            self.solve_anatomy(features)
+        self.solve_expressions(features)
+
+    def _template_anatomy(self, features: dict[str, torch.Tensor] | None):
+        """(Anatomy at the template points, sine features per network) - features computed if None."""
+        model = self.model
+        if features is None:
+            x = model.normalize(self.data.template)
+            features = {name: getattr(model, name).features(x) for name in model.NETWORKS}
+        raw = {name: getattr(model, name).output(h) for name, h in features.items()}
+        return model.assemble(self.data.template, raw), features
+
+    @torch.no_grad()
+    def solve_expressions(self, features: dict[str, torch.Tensor] | None = None) -> None:
         """Set E's linear output layer to its least-squares optimum with everything else fixed.
 
         Shape i >= 1 is ``LBS(s0, T_i, k) + expression_mm * (H W_i^T + b_i)`` where H are the last
@@ -274,13 +370,13 @@ class ActorTrainer:
         optimum solves one ridge-regularised normal equation shared by all 3(N-1) outputs.
         """
         d, model = self.data, self.model
-        anatomy = model(d.template)
+        anatomy, features = self._template_anatomy(features)
         pred = model.training_shapes(anatomy, self.jaw_rot6d, self.jaw_t)[1:]  # (N-1, V, 3)
         scale = model.config.expression_mm
         e_now = anatomy.expressions.permute(1, 0, 2)                     # (N-1, V, 3)
         residual = (d.shapes[1:] - (pred - e_now)) / scale                 # target of H W^T + b
         target = residual.permute(1, 0, 2).reshape(d.template.shape[0], -1)  # (V, 3(N-1))
-        h = model.E.features(model.normalize(d.template))
+        h = features["E"]
         h1 = torch.cat([h, torch.ones_like(h[:, :1])], dim=1).double()
         gram = h1.T @ h1
         gram += self.settings.expression_solve_ridge * torch.trace(gram) / gram.shape[0] * torch.eye(
@@ -288,12 +384,18 @@ class ActorTrainer:
         sol = torch.linalg.solve(gram, h1.T @ target.double())            # (width+1, 3(N-1))
         model.E.output.weight.copy_(sol[:-1].T.to(model.E.output.weight.dtype))
         model.E.output.bias.copy_(sol[-1].to(model.E.output.bias.dtype))
+        # Per-vertex RMS error over the shapes after the solve: where importance sampling looks.
+        n_expr = d.shapes.shape[0] - 1
+        left = ((target.double() - h1 @ sol) * scale).reshape(-1, n_expr, 3).square().sum(-1).sum(1)
+        left += (anatomy.neutral - d.shapes[0]).double().square().sum(-1)
+        self.vertex_error = (left / (n_expr + 1)).sqrt().float()
         # Adam's running moments belong to the old weights; restart them for this layer.
         for p in (model.E.output.weight, model.E.output.bias):
             self.optimizer.state.pop(p, None)
+            self._solved.add(p)
 
     @torch.no_grad()
-    def solve_anatomy(self) -> None:
+    def solve_anatomy(self, features: dict[str, torch.Tensor] | None = None) -> None:
         """Set the linear output layers of B and D jointly to their least-squares optimum.
 
         With the sine features of B and D, the normals N, the skinning weights K, the jaw
@@ -311,8 +413,7 @@ class ActorTrainer:
         f64 = torch.float64
         c = d.template.double()
         P, N = c.shape[0], d.shapes.shape[0]
-        x = model.normalize(d.template)
-        an = model(d.template)
+        an, features = self._template_anatomy(features)
         pred = model.training_shapes(an, self.jaw_rot6d, self.jaw_t).double()     # (N, P, 3)
         eye = torch.eye(3, dtype=f64, device=c.device)
         R = torch.cat([eye[None], rot6d_to_matrix(self.jaw_rot6d).double()], 0)   # (N, 3, 3)
@@ -324,18 +425,23 @@ class ActorTrainer:
         q = torch.einsum("npab,npa->pb", A, y) - torch.einsum("pab,pb->pa", G, c)
         n = an.normal.double()
         one = torch.ones(P, 1, dtype=f64, device=c.device)
-        hB = torch.cat([model.B.features(x).double(), one], 1)                    # (P, h1)
-        hD = torch.cat([model.D.features(x).double(), one], 1)
+        hB = torch.cat([features["B"].double(), one], 1)                          # (P, h1)
+        hD = torch.cat([features["D"].double(), one], 1)
         h1 = hB.shape[1]
         sb, sd = model.config.bone_offset_mm, model.config.thickness_mm
         a_s = w.skin / (N * P * u2)
         Gn = torch.einsum("pab,pb->pa", G, n)
         M = torch.zeros(4 * h1, 4 * h1, dtype=f64, device=c.device)
         rhs = torch.zeros(4 * h1, dtype=f64, device=c.device)
+        # The (width+1)^2 blocks are sums over the P points: float32 products (their rounding is
+        # far below the ridge) and G's symmetry halve the cost of the solve.
+        hBf, hDf, Gf, Gnf = hB.float(), hD.float(), G.float(), Gn.float()
         for a in range(3):
-            for b in range(3):
-                M[a * h1:(a + 1) * h1, b * h1:(b + 1) * h1] = a_s * sb * sb * (hB.T * G[:, a, b]) @ hB
-            bd = a_s * sb * sd * (hB.T * Gn[:, a]) @ hD
+            for b in range(a, 3):
+                blk = a_s * sb * sb * ((hBf.T * Gf[:, a, b]) @ hBf).double()
+                M[a * h1:(a + 1) * h1, b * h1:(b + 1) * h1] = blk
+                M[b * h1:(b + 1) * h1, a * h1:(a + 1) * h1] = blk.T
+            bd = a_s * sb * sd * ((hBf.T * Gnf[:, a]) @ hDf).double()
             M[a * h1:(a + 1) * h1, 3 * h1:] = bd
             M[3 * h1:, a * h1:(a + 1) * h1] = bd.T
             rhs[a * h1:(a + 1) * h1] = a_s * sb * hB.T @ q[:, a]
@@ -351,8 +457,9 @@ class ActorTrainer:
             hDm = torch.cat([model.D.features(xm).double(), onem], 1)
             a_b, a_d = w.bone / (m * u2), w.thickness / (m * u2)
             target_b = d.bone_target.double() - d.constraint_points.double()
+            gram_bm = a_b * sb * sb * hBm.T @ hBm
             for a in range(3):
-                M[a * h1:(a + 1) * h1, a * h1:(a + 1) * h1] += a_b * sb * sb * hBm.T @ hBm
+                M[a * h1:(a + 1) * h1, a * h1:(a + 1) * h1] += gram_bm
                 rhs[a * h1:(a + 1) * h1] += a_b * sb * hBm.T @ target_b[:, a]
             M[3 * h1:, 3 * h1:] += a_d * sd * sd * hDm.T @ hDm
             rhs[3 * h1:] += a_d * sd * hDm.T @ d.thickness_target.double()
@@ -366,6 +473,7 @@ class ActorTrainer:
             layer.bias.copy_(W[:, -1].to(layer.bias.dtype))
             for p in (layer.weight, layer.bias):
                 self.optimizer.state.pop(p, None)
+                self._solved.add(p)
 
     @torch.no_grad()
     def evaluate(self) -> Evaluation:
@@ -393,6 +501,8 @@ class ActorTrainer:
             "jaw_rot6d": self.jaw_rot6d.detach().clone(), "jaw_t_units": self.jaw_t_units.detach().clone(),
             "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
             "generator": self.generator.get_state(), "iteration": self.iteration,
+            "vertex_error": self.vertex_error,
+            "solved_layers": sorted(n for n, p in self.model.named_parameters() if p in self._solved),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -404,5 +514,8 @@ class ActorTrainer:
         self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["generator"])
         self.iteration = int(state["iteration"])
+        self.vertex_error = state.get("vertex_error")
+        solved = set(state.get("solved_layers", ()))
+        self._solved = {p for n, p in self.model.named_parameters() if n in solved}
 
 

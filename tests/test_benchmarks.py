@@ -198,3 +198,15 @@ def test_bench_outofspan_quick(tmp_path):
     assert {"AIM default", "GBS19 [0,1]", "GBS53 [0,1] (bound)"} <= set(methods)
     assert all(np.isfinite(m["mean_mm"]) and np.isfinite(m["mouth_mm"]) for m in methods.values())
     assert (tmp_path / "outofspan_quick.json").is_file()
+
+
+def test_bench_actor_quick(tmp_path):
+    from benchmarks.bench_actor import main
+
+    res = main(["--quick", "--out", str(tmp_path), "--actors", "fitted"])
+    assert [(r["preset"], r["kind"]) for r in res["runs"]] == [("fast", "fitted"), ("paper", "fitted")]
+    for r in res["runs"]:
+        tr, q = r["meta"]["training"], r["meta"]["quality"]
+        assert tr["iterations"] == (20 if r["preset"] == "fast" else 5) and tr["torch_threads"] == 1
+        assert 0 < tr["train_cpu_seconds"] <= r["cpu_s"] and r["peak_mb"] > 0
+        assert np.isfinite(q["mean_mm"]) and len(q["per_shape"]) == 20

@@ -13,8 +13,10 @@ import contextlib
 import datetime as dt
 import hashlib
 import json
+import os
 import platform
 import shutil
+import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -54,6 +56,7 @@ class TrainOptions:
     forehead: Path | None = None         # vertex index list
     trusted: Path | None = None          # vertex index list for the constraints
     device: str = "cpu"
+    threads: int = 0                     # torch CPU threads while training (0 = leave torch's setting)
     overwrite: bool = False
     checkpoint_seconds: float = 60.0
     eval_every: int = 50
@@ -163,6 +166,22 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
     return data, extras
 
 
+@contextlib.contextmanager
+def _restore_threads(n: int):
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
+
+
+def _load_average() -> tuple[float, ...]:
+    """The system's 1/5/15-minute load averages (empty where the OS has none): timings depend on them."""
+    try:
+        return tuple(round(v, 2) for v in os.getloadavg())
+    except (AttributeError, OSError):
+        return ()
+
+
 def _evaluation_metadata(ev: Evaluation, names: list[str]) -> dict:
     return {
         "per_shape": {n: {"mean_mm": m, "max_mm": x} for n, m, x in zip(names, ev.shape_mean_mm, ev.shape_max_mm)},
@@ -181,6 +200,8 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
             raise CaptureError(f"actor '{options.actor}' already exists at {out}; pass --overwrite to retrain it")
         remove_actor(out)
     settings = resolve_settings(options.preset, options.overrides)
+    if options.threads < 0:
+        raise CaptureError(f"--threads must be 1 or more, or 0 for torch's default (got {options.threads})")
     shapes = load_shape_dir(options.shapes, options.neutral, options.units)
     if options.device != "cpu" and not torch.cuda.is_available() and options.device.startswith("cuda"):
         raise CaptureError(f"device '{options.device}' is not available on this machine; use --device cpu")
@@ -221,10 +242,11 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
 
     config = model_config_for(data, settings, extras["jaw_pivot"])
     trainer = ActorTrainer(data, settings, config, device=options.device)
-    elapsed_before = 0.0
+    elapsed_before = cpu_before = 0.0
     if state is not None:
         trainer.load_state_dict(state["trainer"])
         elapsed_before = float(state.get("train_seconds", 0.0))
+        cpu_before = float(state.get("train_cpu_seconds", 0.0))
         report(f"resuming training of '{options.actor}' at iteration {trainer.iteration} of {settings.iterations}")
     train_dir.mkdir(parents=True, exist_ok=True)
     write_json(train_dir / "settings.json", {**resolved, "fingerprint": fingerprint,
@@ -232,14 +254,20 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
 
     def save_checkpoint(seconds: float) -> None:
         with atomic_path(ckpt_path) as tmp:
-            torch.save({"fingerprint": fingerprint, "trainer": trainer.state_dict(), "train_seconds": seconds}, tmp)
+            torch.save({"fingerprint": fingerprint, "trainer": trainer.state_dict(), "train_seconds": seconds,
+                        "train_cpu_seconds": cpu_before + time.process_time() - cpu0}, tmp)
 
     log_path = train_dir / "log.jsonl"
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     last_ckpt = t0
     ev = None
     progress = progress or TrainingProgress(enabled=False)
-    with sigterm_as_interrupt(), progress.session(settings.iterations, trainer.iteration) as update:
+    threads_before = torch.get_num_threads()
+    if options.threads:
+        torch.set_num_threads(options.threads)
+    threads_used = torch.get_num_threads()
+    with sigterm_as_interrupt(), _restore_threads(threads_before), \
+            progress.session(settings.iterations, trainer.iteration) as update:
         try:
             while trainer.iteration < settings.iterations:
                 terms = trainer.step()
@@ -250,7 +278,9 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                     ev = trainer.evaluate()
                     with open(log_path, "a") as fh:
                         fh.write(json.dumps({"iteration": trainer.iteration, "seconds": elapsed_before + time.perf_counter() - t0,
-                                             "mean_mm": ev.mean_mm, **terms}) + "\n")
+                                             "cpu_seconds": cpu_before + time.process_time() - cpu0,
+                                             "mean_mm": ev.mean_mm, "worst_shape_mm": max(ev.shape_mean_mm),
+                                             "max_mm": max(ev.shape_max_mm), **terms}) + "\n")
                 update(trainer.iteration, terms["total"], ev.mean_mm if ev else float("nan"))
                 now = time.perf_counter()
                 if now - last_ckpt > options.checkpoint_seconds:
@@ -261,6 +291,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
             raise Interrupted(f"training of '{options.actor}' interrupted at iteration {trainer.iteration}; "
                               f"checkpoint saved in {train_dir}: run the same command to resume") from None
     train_seconds = elapsed_before + time.perf_counter() - t0
+    train_cpu_seconds = cpu_before + time.process_time() - cpu0
     ev = trainer.evaluate()
 
     R = rot6d_to_matrix(trainer.jaw_rot6d.detach()).cpu().numpy()
@@ -278,8 +309,9 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                    "jaw": str(options.jaw) if options.jaw else None, "bones_estimated": extras["bones_estimated"]},
         "model": config.to_dict(),
         "training": {"preset": options.preset, "settings": settings.to_dict(), "iterations": trainer.iteration,
-                     "train_seconds": train_seconds, "prepare_seconds": prep_seconds, "device": options.device,
-                     "torch_threads": torch.get_num_threads()},
+                     "train_seconds": train_seconds, "train_cpu_seconds": train_cpu_seconds,
+                     "prepare_seconds": prep_seconds, "device": options.device,
+                     "torch_threads": threads_used, "load_average": list(_load_average())},
         "quality": _evaluation_metadata(ev, shapes.names),
         "anatomy_constraints": {"count": int(len(con.thickness)), "coverage": float(con.coverage),
                                 "candidates": int(con.n_candidates),
@@ -302,22 +334,49 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     return out
 
 
-class TrainingProgress:
-    """A rich progress bar: iteration, loss, current mean error (mm) and time left."""
+def progress_line(iteration: int, total: int, loss: float, err_mm: float, elapsed_s: float, left_s: float | None) -> str:
+    """One plain progress line: iteration, loss, current error (mm), time so far and time left."""
+    left = "estimating" if left_s is None else f"about {_minutes(left_s)} left"
+    err = "not measured yet" if not np.isfinite(err_mm) else f"{err_mm:.4f} mm"
+    return (f"training: iteration {iteration}/{total} ({100 * iteration / max(total, 1):.0f} %), loss {loss:.3e}, "
+            f"error {err}, {_minutes(elapsed_s)} elapsed, {left}")
 
-    def __init__(self, enabled: bool = True):
+
+def _minutes(seconds: float) -> str:
+    return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
+
+
+def time_left(done_here: int, seconds_here: float, remaining: int) -> float | None:
+    """Seconds left for ``remaining`` iterations at the rate of this session (None before any step)."""
+    if done_here <= 0 or seconds_here <= 0:
+        return None
+    return remaining * seconds_here / done_here
+
+
+class TrainingProgress:
+    """Training progress: iteration, loss, current mean error (mm), time elapsed and time left.
+
+    Enabled: a rich progress bar. Disabled (``--no-progress``, logs, batch jobs): one plain line
+    every ``interval_s`` seconds and one at the end, through ``write`` (default: standard error).
+    """
+
+    def __init__(self, enabled: bool = True, interval_s: float = 60.0, write: Callable[[str], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic):
         self.enabled = enabled
+        self.interval_s = interval_s
+        self.write = write or (lambda line: print(line, file=sys.stderr, flush=True))
+        self.clock = clock
 
     @contextlib.contextmanager
     def session(self, total: int, start: int):
         if not self.enabled:
-            yield lambda *a: None
+            yield self._line_updater(total, start)
             return
         from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                    TimeRemainingColumn)
 
         columns = [TextColumn("training"), BarColumn(), MofNCompleteColumn(),
-                   TextColumn("loss {task.fields[loss]:.3e}  error {task.fields[err]:.3f} mm"),
+                   TextColumn("loss {task.fields[loss]:.3e}  error {task.fields[err]:.4f} mm"),
                    TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn()]
         with Progress(*columns, transient=False) as bar:
             task = bar.add_task("train", total=total, completed=start, loss=float("nan"), err=float("nan"))
@@ -326,3 +385,17 @@ class TrainingProgress:
                 bar.update(task, completed=iteration, loss=loss, err=err)
 
             yield update
+
+    def _line_updater(self, total: int, start: int) -> Callable[[int, float, float], None]:
+        t0 = self.clock()
+        last = [t0]
+
+        def update(iteration: int, loss: float, err: float) -> None:
+            now = self.clock()
+            if now - last[0] < self.interval_s and iteration < total:
+                return
+            last[0] = now
+            self.write(progress_line(iteration, total, loss, err, now - t0,
+                                     time_left(iteration - start, now - t0, total - iteration)))
+
+        return update

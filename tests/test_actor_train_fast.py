@@ -1,0 +1,123 @@
+"""The faster trainer computes the paper's losses: against the plain all-networks-everywhere reference,
+unbiased under importance sampling; and the plain-line progress (``--no-progress``)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from capture.actor.training import TrainingProgress, TrainOptions, prepare, progress_line, resolve_settings, time_left
+from capture.io.meshes import load_shape_dir
+from models.losses import anatomy_losses, skinning_weight_loss
+from models.train import ActorTrainer, model_config_for
+from tests.tiny_actor import write_tiny_actor_inputs
+
+
+@pytest.fixture(scope="module")
+def trainer(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fast")
+    shapes, skull, jaw = write_tiny_actor_inputs(root)
+    options = TrainOptions(actor="x", shapes=shapes, skull=skull, jaw=jaw)
+    data, extras = prepare(options, load_shape_dir(shapes), report=lambda m: None)
+    settings = resolve_settings("fast", dict(width=32, iterations=100, points_per_step=400, importance=0.5,
+                                                importance_reweight=True))
+    tr = ActorTrainer(data, settings, model_config_for(data, settings, extras["jaw_pivot"]))
+    for _ in range(10):  # away from the initialisation
+        tr.step()
+    tr.solve_output_layers()  # also sets the per-vertex error that importance sampling uses
+    return tr
+
+
+def _reference_terms(tr: ActorTrainer, index=None, weights=None, con_index=None) -> dict[str, torch.Tensor]:
+    """The losses the readable way: every network on every point through ``model.forward``."""
+    d, w, model = tr.data, tr.settings.weights, tr.model
+    unit = w.length_unit_mm
+    c = d.template if index is None else d.template[index]
+    target = d.shapes if index is None else d.shapes[:, index]
+    sel = slice(None) if con_index is None else con_index
+    skin = model(c)
+    con = model(d.constraint_points[sel])
+    pred = model.training_shapes(skin, tr.jaw_rot6d, tr.jaw_t)
+    lb, ld, ln = anatomy_losses(con.bone, con.thickness, con.normal, d.bone_target[sel], d.thickness_target[sel],
+                                d.normal_target[sel], unit)
+    per_point = lambda v: v.mean() if weights is None else (v * weights).mean()
+    return {
+        "skin": w.skin * per_point(((pred - target) / unit).square().sum(-1)),
+        "bone": w.bone * lb, "thickness": w.thickness * ld, "normal": w.normal * ln,
+        "thickness_reg": w.thickness_reg * per_point((skin.thickness / unit).square()),
+        "symmetry": w.symmetry * per_point(((model.bone(d.reflect(c)) - d.reflect(skin.bone)) / unit).square().sum(-1)),
+        "forehead": w.forehead_skinning * skinning_weight_loss(model(d.forehead_points).skin_weight),
+        "jaw": tr.settings.jaw_skinning_prior * skinning_weight_loss(model(d.jaw_points).skin_weight - 1),
+    }
+
+
+def test_losses_match_the_all_networks_reference(trainer):
+    with torch.no_grad():
+        fast = trainer.losses()
+        ref = _reference_terms(trainer)
+        for name, value in ref.items():
+            torch.testing.assert_close(fast[name], value, rtol=1e-4, atol=1e-9, msg=name)
+        # A subsample with importance weights and a subset of the constrained points.
+        sample = trainer._sample()
+        assert sample.weights is not None and sample.constraint_index is not None
+        fast = trainer.losses(sample)
+        ref = _reference_terms(trainer, sample.index, sample.weights, sample.constraint_index)
+        for name, value in ref.items():
+            torch.testing.assert_close(fast[name], value, rtol=1e-4, atol=1e-9, msg=name)
+
+
+def test_importance_sampling_is_unbiased_and_looks_where_the_error_is(trainer):
+    torch.manual_seed(0)
+    with torch.no_grad():
+        full = float(trainer.losses()["skin"])
+        draws = torch.tensor([float(trainer.losses(trainer._sample())["skin"]) for _ in range(100)])
+        samples = [trainer._sample() for _ in range(50)]
+    # Mean of 100 weighted draws against the full mean: within 4 standard errors.
+    assert abs(float(draws.mean()) - full) < 4 * float(draws.std()) / 100 ** 0.5, (float(draws.mean()), full)
+    # The worst tenth of the vertices (by the trainer's error) is drawn as often as the mixture says:
+    # a tenth of the uniform half plus their share of the error in the other half (20,000 draws).
+    err = trainer.vertex_error
+    worst = err >= torch.quantile(err, 0.9)
+    expected = 0.5 * float(worst.float().mean()) + 0.5 * float(err[worst].sum() / err.sum())
+    share = float(torch.cat([worst[s.index] for s in samples]).float().mean())
+    assert expected > 0.12 and share == pytest.approx(expected, abs=0.015), (share, expected)
+    # Uniform sampling (importance 0) draws distinct points without weights.
+    uniform = ActorTrainer.__new__(ActorTrainer)
+    uniform.__dict__.update(trainer.__dict__, settings=replace(trainer.settings, importance=0.0))
+    s = uniform._sample()
+    assert s.weights is None and len(set(s.index.tolist())) == len(s.index) == 400
+
+
+def test_no_progress_prints_a_line_per_minute_with_time_left():
+    lines, now = [], [0.0]
+    progress = TrainingProgress(enabled=False, interval_s=60.0, write=lines.append, clock=lambda: now[0])
+    with progress.session(total=1000, start=200) as update:
+        for it in range(201, 1001):
+            now[0] += 0.5                     # 0.5 s per step: 800 steps in 400 s
+            update(it, 1e-3, 0.08)
+    # one line at each full minute of the 400 s (6) and one at the end
+    assert len(lines) == 7, lines
+    # after 60 s, 120 steps done of this session's 800: 680 left at 0.5 s -> 340 s
+    assert "iteration 320/1000" in lines[0] and "5.7 min left" in lines[0] and "0.0800 mm" in lines[0]
+    assert "iteration 1000/1000" in lines[-1] and "0 s left" in lines[-1]
+    assert time_left(0, 0.0, 10) is None
+    assert "estimating" in progress_line(0, 10, float("nan"), float("nan"), 0.0, None)
+
+
+def test_solved_output_layers_stay_out_of_adam(trainer):
+    """After a closed-form solve, Adam steps move the hidden layers but not the solved output layers."""
+    trainer.step()  # (the fixture ends on a solve step)
+    assert trainer.settings.freeze_solved_layers and trainer.iteration % trainer.settings.expression_solve_every
+    solved = {n: p.detach().clone() for n, p in trainer.model.named_parameters() if n.endswith(("output.weight", "output.bias"))}
+    hidden = trainer.model.E.layers[1].linear.weight.detach().clone()
+    trainer.step()
+    for name in ("B.output.weight", "D.output.bias", "E.output.weight", "E.output.bias"):
+        torch.testing.assert_close(dict(trainer.model.named_parameters())[name].detach(), solved[name], rtol=0, atol=0)
+    # N and K have no closed-form solve: Adam still trains their output layers, and every hidden layer.
+    assert not torch.equal(trainer.model.N.output.weight.detach(), solved["N.output.weight"])
+    assert not torch.equal(trainer.model.E.layers[1].linear.weight.detach(), hidden)
+    # The set of frozen layers survives a checkpoint.
+    state = trainer.state_dict()
+    assert "E.output.weight" in state["solved_layers"] and "N.output.weight" not in state["solved_layers"]
