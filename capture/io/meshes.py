@@ -80,6 +80,28 @@ class ShapeSet:
         return trimesh.Trimesh(self.vertices[0], self.faces, process=False)
 
 
+def load_mesh_folder(folder: Path, units: str, n_vertices: int, fix: str) -> tuple[list[Path], np.ndarray]:
+    """The OBJ/PLY meshes of ``folder`` in file-name order -> (files, vertices ``(T, V, 3)`` float64 mm).
+
+    Every mesh must have ``n_vertices`` vertices (one line ending in ``fix`` otherwise); the first is
+    checked to be a face's size in ``units`` (:func:`check_face_size`).
+    """
+    files = sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
+    if not files:
+        raise CaptureError(f"no .obj or .ply meshes in {folder}; {fix}")
+    scale = units_scale(units)
+    verts = []
+    for p in files:
+        mesh = load_mesh(p, scale, "mesh")
+        if len(mesh.vertices) != n_vertices:
+            raise CaptureError(f"mesh {p.name} has {len(mesh.vertices)} vertices but the actor's template has "
+                               f"{n_vertices}; {fix}")
+        if not verts:
+            check_face_size(mesh.vertices, units, f"mesh {p.name}")
+        verts.append(np.asarray(mesh.vertices, np.float64))
+    return files, np.stack(verts)
+
+
 def load_shape_dir(directory: str | Path, neutral: str | None = None, units: str = "mm") -> ShapeSet:
     """Load every OBJ/PLY in ``directory`` as one actor's registered shapes.
 

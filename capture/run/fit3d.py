@@ -53,25 +53,12 @@ class Fit3dConfig:
 
 def load_mesh_sequence(folder: Path, units: str, n_vertices: int) -> tuple[list[Path], np.ndarray]:
     """The meshes of ``folder`` sorted by name -> (files, vertices (T, V, 3) mm); topology checked."""
-    from capture.io.meshes import MESH_SUFFIXES, check_face_size, load_mesh, units_scale
+    from capture.io.meshes import load_mesh_folder
 
     folder = Path(folder)
     if not folder.is_dir():
         raise CaptureError(f"mesh folder {folder} does not exist; give a folder of OBJ/PLY meshes")
-    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
-    if not files:
-        raise CaptureError(f"no .obj or .ply meshes in {folder}")
-    scale = units_scale(units)
-    verts = []
-    for p in files:
-        m = load_mesh(p, scale, "mesh")
-        if len(m.vertices) != n_vertices:
-            raise CaptureError(f"mesh {p.name} has {len(m.vertices)} vertices but the actor's template has "
-                               f"{n_vertices}; fit3d needs meshes registered to the actor's topology")
-        if not verts:
-            check_face_size(m.vertices, units, f"mesh {p.name}")
-        verts.append(np.asarray(m.vertices))
-    return files, np.stack(verts)
+    return load_mesh_folder(folder, units, n_vertices, "fit3d needs meshes registered to the actor's topology")
 
 
 def fit3d_take(cfg: Fit3dConfig) -> dict:

@@ -25,22 +25,13 @@ def read_mesh_sequence(path: str | Path, n_vertices: int, units: str = "mm") -> 
     Raises CaptureError when the path is missing, holds no frames, has the wrong vertex count,
     a non-finite coordinate or an array of the wrong shape.
     """
-    from capture.io.meshes import MESH_SUFFIXES, load_mesh, units_scale
+    from capture.io.meshes import load_mesh_folder, units_scale
 
     path = Path(path)
     scale = units_scale(units)
     if path.is_dir():
-        files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
-        if not files:
-            raise CaptureError(f"no .obj or .ply meshes in {path}; give a folder of meshes or an .npz (T, V, 3)")
-        frames = []
-        for p in files:
-            m = load_mesh(p, scale, "mesh")
-            if len(m.vertices) != n_vertices:
-                raise CaptureError(f"mesh {p.name} has {len(m.vertices)} vertices but the actor's template has "
-                                   f"{n_vertices}; register the sequence to the actor's topology")
-            frames.append(np.asarray(m.vertices, np.float64))
-        return np.stack(frames)
+        return load_mesh_folder(path, units, n_vertices, "give a folder of meshes registered to the actor's "
+                                "topology, or an .npz (T, V, 3)")[1]
     if not path.is_file():
         raise CaptureError(f"--meshes {path} does not exist; give a folder of OBJ/PLY meshes or an .npz (T, V, 3)")
     if path.suffix.lower() != ".npz":
