@@ -34,7 +34,7 @@ from calib.camera import Camera
 from calib.projection import camera_tensors
 from capture.fit.init import PnPSettings, interpolate_poses, pnp_frame, smooth_poses
 from capture.fit.take import (CACHE_VERSION, FrameFit, WindowedFit, _check_window, _fingerprint, _query, _run_windows,
-                              _Window, resolve_settings, resolved_settings_dict)
+                              _Window, reprojection_metrics, resolve_settings, resolved_settings_dict)
 from models.fit import Observations
 
 __all__ = ["fit_take_stream", "StreamLandmarkSource"]
@@ -164,11 +164,7 @@ class StreamLandmarkSource:
         return _Window(s, e, obs, t(R0), t(t0), bridged, h.hexdigest(), last)
 
     def frame_metrics(self, j: int, vertices: np.ndarray, landmarks_fit: np.ndarray) -> tuple[float, float]:
-        ok = (self.w[j] > 0) & np.isfinite(self.p[j]).all(1)
-        if not ok.any():
-            return float("nan"), float("nan")
-        r = landmarks_fit[ok] - self.p[j][ok]
-        return float(np.sqrt((r ** 2).sum(1).mean())), float("nan")
+        return reprojection_metrics(self.p[j], self.w[j], landmarks_fit)
 
     def release(self, before: int) -> None:
         for j in [j for j in self.p if j < before]:

@@ -169,6 +169,18 @@ def farthest_point_sample(points: np.ndarray, n: int, start: int = 0) -> np.ndar
 # sources: what a window is fitted to
 
 
+def reprojection_metrics(points: np.ndarray, weights: np.ndarray, landmarks_fit: np.ndarray) -> tuple[float, float]:
+    """(RMS px over the landmarks used: weight > 0 and finite, NaN when none; NaN: no 3D error in 2D).
+
+    ``points``, ``landmarks_fit`` ``(L, 2)`` px; ``weights`` ``(L,)``.
+    """
+    ok = (weights > 0) & np.isfinite(points).all(1)
+    if not ok.any():
+        return float("nan"), float("nan")
+    r = landmarks_fit[ok] - points[ok]
+    return float(np.sqrt((r ** 2).sum(1).mean())), float("nan")
+
+
 @dataclass
 class _Window:
     start: int
@@ -202,11 +214,7 @@ class _LandmarkSource:
         return _Window(s, e, obs, t(self.R0[s:e]), t(self.t0[s:e]), bridged, h.hexdigest(), e >= self.T)
 
     def frame_metrics(self, j: int, vertices: np.ndarray, landmarks_fit: np.ndarray) -> tuple[float, float]:
-        ok = (self.w[j] > 0) & np.isfinite(self.p[j]).all(1)
-        if not ok.any():
-            return float("nan"), float("nan")
-        r = landmarks_fit[ok] - self.p[j][ok]
-        return float(np.sqrt((r ** 2).sum(1).mean())), float("nan")
+        return reprojection_metrics(self.p[j], self.w[j], landmarks_fit)
 
     def release(self, before: int) -> None:
         pass
