@@ -752,18 +752,18 @@ def _files(root: Path) -> dict[str, bytes]:
 
 
 def test_overwrite_keeps_the_old_run_until_the_new_one_succeeded(env, tmp_path, monkeypatch, capsys):
-    import capture.run.take as take
+    from capture.export.params import ParamsWriter
 
     out = run_copy(env, tmp_path)
     edit_json(out / "run.json", _set("take_id", "another"))
     (out / "meshes" / "mine.txt").write_text("the user's own file")
     before = _files(out)
 
-    def interrupted(*a, **k):
+    def interrupted(*a, **k):   # Ctrl-C during the export, streamed or not
         raise KeyboardInterrupt
 
     with monkeypatch.context() as m:
-        m.setattr(take, "export_stage", interrupted)
+        m.setattr(ParamsWriter, "write", interrupted)
         assert main(run_args(env, None, None, "default", out, "--formats", "npz", "--overwrite")) == 130
     after = _files(out)
     assert {k: v for k, v in after.items() if k in before} == before   # the old run is whole
@@ -871,7 +871,7 @@ def test_export_key_describes_the_files_on_disk(env, tmp_path, monkeypatch, caps
         m.setattr(mesh_files.MeshSequenceWriter, "write", dies_after_three)
         assert main(run_args(env, None, None, "default", out, *changed)) == 130
     state = json.loads((out / "export.json").read_text())
-    assert state["status"] == "running" and "key" not in state
+    assert state["status"] == "running" and state.get("key") is None   # no key until the files are written
     assert main(run_args(env, None, None, "default", out, *changed)) == 0
     assert main(run_args(env, None, None, "default", fresh, *changed)) == 0
     capsys.readouterr()
@@ -909,16 +909,18 @@ def test_collapsed_detector_output_is_an_error_not_a_success(env, tmp_path, monk
     problems = landmark_problems(pts, None)
     assert "collapsed" in problems[0] and problems[1] == ""
 
-    from capture.detector import LandmarkTrack
+    from capture.detector.runtime import Detector
 
-    orig = LandmarkTrack.load_npz.__func__
+    orig = Detector.run_lanes
 
-    def collapsed(cls, path):
-        t = orig(cls, path)
-        t.points = np.zeros_like(t.points) + 100.0
-        return t
+    def collapsed(self, lanes, *a, **k):   # the detector's output, streamed or not, collapses onto one pixel
+        out = orig(self, lanes, *a, **k)
+        for lane in lanes:
+            for r in lane.results:
+                r.points = np.zeros_like(r.points) + 100.0
+        return out
 
-    monkeypatch.setattr(LandmarkTrack, "load_npz", classmethod(collapsed))
+    monkeypatch.setattr(Detector, "run_lanes", collapsed)
     rc = main(run_args(env, out=tmp_path / "o"))
     msg = one_line_error(rc, capsys.readouterr().err)
     assert "collapsed" in msg
@@ -1003,7 +1005,7 @@ def test_one_broken_actor_does_not_break_actor_list(env, tmp_path, monkeypatch, 
     rows = [line for line in out.out.splitlines() if line.strip().startswith("│")]
     bad = [r for r in rows if "unusable" in r]
     assert len(bad) == 1 and "bad" in bad[0]
-    assert any("tiny" in r and "unusable" not in r for r in rows)   # the good one, listed by its name
+    assert any("good" in r and "unusable" not in r for r in rows)   # the good one, listed by the name --actor takes
 
 
 def test_a_crafted_detection_cache_is_never_loaded_whole(env, tmp_path, capsys):
