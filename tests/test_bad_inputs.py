@@ -267,22 +267,21 @@ def meshes_dir(e: Env, d: Path, n: int = 3, scale: float = 1.0, fn=None) -> Path
     return folder
 
 
-def shoot(d: Path, text: str | bytes, name: str = "shoot.toml") -> Path:
+def write_file(d: Path, text: str | bytes, name: str) -> Path:
     p = d / name
     if isinstance(text, bytes):
         p.write_bytes(text)
     else:
         p.write_text(text)
     return p
+
+
+def shoot(d: Path, text: str | bytes, name: str = "shoot.toml") -> Path:
+    return write_file(d, text, name)
 
 
 def region(d: Path, text: str | bytes, name: str = "region.json") -> Path:
-    p = d / name
-    if isinstance(text, bytes):
-        p.write_bytes(text)
-    else:
-        p.write_text(text)
-    return p
+    return write_file(d, text, name)
 
 
 def edit_args(e: Env, d: Path, reg=None, *extra, actor=None) -> list[str]:
