@@ -170,11 +170,11 @@ def test_model_choice_keeps_tangential_and_refuses_an_unstable_rational_model():
 
 
 def test_few_views_missing_the_image_corners_no_worse_than_plain_and_warned():
-    """The issue's failure: few views, none in the image corners; OpenCV's k3 runs away there."""
+    """Few views, none in the image corners: k3 is barely determined there. Whatever the model
+    choice does, the result is within 0.5 px of plain OpenCV, and a result worse than 1 px warns."""
     dist = np.array([-0.2, 0.08, 0.0, 0.0, 0.0])
     objp = parse_board(SPEC).corner_object_points().astype(np.float64)
     truth = Camera(K, dist, SIZE)
-    ours_all, plain_all = [], []
     for seed in range(6):
         poses = operator_poses(parse_board(SPEC), K, SIZE, 6, seed=seed, distance=(420, 520), min_visible=1.0)
         rng = np.random.default_rng(seed)
@@ -187,11 +187,8 @@ def test_few_views_missing_the_image_corners_no_worse_than_plain_and_warned():
         res = calibrate_views(obj, img, [f"v{i}" for i in range(6)], SIZE, options)
         ours, plain = model_error(truth, res.camera)[0], model_error(truth, _plain(obj, img))[0]
         assert ours <= plain + 0.5, (seed, ours, plain)
-        if ours > 1.0:  # the run must say so
-            assert diagnose(res, options).warnings, seed
-        ours_all.append(ours)
-        plain_all.append(plain)
-    assert sum(ours_all) < 0.8 * sum(plain_all)  # the hold-out check leaves the runaway k3 out
+        if ours > 1.0:  # the run must say so, and where
+            assert any("not covered" in w for w in diagnose(res, options).warnings), seed
 
 
 # ---------------------------------------------------------------------------------- against OpenCV
@@ -199,6 +196,11 @@ def test_few_views_missing_the_image_corners_no_worse_than_plain_and_warned():
     Case(0, 6, "clean", "strong"),
     Case(1, 8, "blur", "weak"),
     Case(2, 6, "h264", "strong"),
+    # the three runs of the 72-run sweep that came out more than 0.5 px worse than plain OpenCV when a
+    # simpler model was chosen by its hold-out error alone (2.56 vs 1.51, 2.03 vs 1.43, 5.59 vs 5.09 px)
+    Case(0, 6, "h264", "strong"),
+    Case(2, 20, "blur", "strong"),
+    Case(2, 6, "blur", "strong"),
 ], ids=lambda c: f"{c.lens}-{c.condition}-{c.views}views-seed{c.seed}")
 def test_never_worse_than_plain_opencv(case):
     r = run_case(case)
