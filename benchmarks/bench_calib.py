@@ -15,7 +15,9 @@ Cases: seeds x views (6, 8, 12, 20) x condition (clean: sigma 0.5 blur + noise 2
 noise 3; h264: a video, 3 frames per view (the view, a near-duplicate, a motion-blurred frame on the
 way to the next view), libx264 yuv420p crf 23) x lens (weak, strong distortion).
 
-    python benchmarks/bench_calib.py            # 3 seeds x 4 x 3 x 2 = 72 cases, 640x480
+    python benchmarks/bench_calib.py            # seeds 0-2 x 4 x 3 x 2 = 72 cases, 640x480
+    python benchmarks/bench_calib.py --first-seed 10 --seeds 10 --out /tmp/tune   # the seeds the lens
+                                                # model choice was tuned on (calib.calibrate.choose_model)
     python benchmarks/bench_calib.py --quick    # 1 case (a 6-view H.264 video)
     python benchmarks/bench_calib.py --issue    # the issue's 1920x1080 case (9x6 board, 20 views, video)
 """
@@ -180,10 +182,11 @@ def run_case(case: Case, renderer: Renderer | None = None, spec: str = SPEC, K_t
     }
 
 
-def cases(quick: bool, seeds: int, views=VIEWS) -> list[Case]:
+def cases(quick: bool, seeds: int, views=VIEWS, first_seed: int = 0) -> list[Case]:
     if quick:
         return [Case(1, 6, "h264", "weak")]
-    return [Case(s, v, c, lens) for lens in LENSES for c in CONDITIONS for v in views for s in range(seeds)]
+    return [Case(s, v, c, lens) for lens in LENSES for c in CONDITIONS for v in views
+            for s in range(first_seed, first_seed + seeds)]
 
 
 def _print_row(r: dict) -> None:
@@ -234,6 +237,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one case, to check the script runs")
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--issue", action="store_true", help="the issue's 1920x1080, 9x6-board case instead")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--table", type=Path, help="only print the table of a results JSON written before")
@@ -263,15 +267,21 @@ def main(argv: list[str] | None = None) -> dict:
             _print_row(r)
     else:
         renderers = {lens: Renderer(SPEC, K, d, SIZE) for lens, d in LENSES.items()}
-        for case in [c for c in cases(args.quick, args.seeds, VIEWS_SEL) if c.lens in lenses]:
+        for case in [c for c in cases(args.quick, args.seeds, VIEWS_SEL, args.first_seed) if c.lens in lenses]:
             r = run_case(case, renderers[case.lens])
             rows.append(r)
             _print_row(r)
+    excess = np.array([r["ours_max_px"] - r["plain_max_px"] for r in rows])
     res = {"rows": rows, "summary": summarise(rows),
-           "worst_excess_px": max(r["ours_max_px"] - r["plain_max_px"] for r in rows),
-           "worst_ours_max_px": max(r["ours_max_px"] for r in rows)}
+           "worst_excess_px": float(excess.max()),
+           "worst_ours_max_px": max(r["ours_max_px"] for r in rows),
+           "runs_over_half_px_worse": int(np.sum(excess > 0.5)),
+           "runs_better_same_worse": [int(np.sum(excess < -0.05)), int(np.sum(np.abs(excess) <= 0.05)),
+                                      int(np.sum(excess > 0.05))]}
     print(markdown_table(rows))
-    print(f"worst: ours max {res['worst_ours_max_px']:.3f} px; ours - plain at most {res['worst_excess_px']:+.3f} px")
+    print(f"worst: ours max {res['worst_ours_max_px']:.3f} px; ours - plain at most {res['worst_excess_px']:+.3f} px; "
+          f"{res['runs_over_half_px_worse']} of {len(rows)} runs > 0.5 px worse than plain; better / equal / worse "
+          f"(0.05 px): {' / '.join(map(str, res['runs_better_same_worse']))}")
     if not args.quick:
         args.out.mkdir(parents=True, exist_ok=True)
         write_text(args.out / ("calib_issue.json" if args.issue else "calib.json"), json.dumps(res, indent=1))

@@ -219,7 +219,7 @@ def run_calibrate(settings: CalibrateSettings) -> CalibrateOutputs:
     }
     report = _report(settings, board, footage, examined, used, dropped, result, camera, coverage, diag,
                      timings, written=not failed)
-    write_json(report_path, report)
+    write_json(report_path, _json_safe(report))
     _print_summary(settings, camera, result, used, dropped, coverage, diag, report_path, plot_path, cov_plot,
                    written=not failed)
     if failed:
@@ -228,6 +228,20 @@ def run_calibrate(settings: CalibrateSettings) -> CalibrateOutputs:
             f"see {report_path} and {cov_plot}"
         )
     return CalibrateOutputs(settings.out, report_path, plot_path, cov_plot, result, diag)
+
+
+def _json_safe(obj):
+    """``obj`` with every non-finite float (a hold-out fold that failed, the covariance of a model the
+    views cannot determine) as None: JSON has no inf or NaN, and the report must still be written."""
+    import math
+
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    return obj
 
 
 def _category(reason: str) -> str:
