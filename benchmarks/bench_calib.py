@@ -233,6 +233,33 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def before_after_table(before: list[dict], rows: list[dict]) -> str:
+    """``markdown_table`` with an earlier run's results (same cases) beside; bold: > 0.5 px worse than plain."""
+    key = lambda r: (r["lens"], r["condition"], r["views"], r["seed"])  # noqa: E731
+    old = {key(r): r for r in before}
+    out = ["| lens | input | views | plain max px (per seed) | before: ours max px | now: ours max px | "
+           "now - plain, worst | now mean px | plain mean px | now <= 1 px | runs warned | model(s) now |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["lens"], r["condition"], r["views"]), []).append(r)
+
+    def cell(v: float, plain: float) -> str:
+        return f"**{v:.2f}**" if v - plain > 0.5 else f"{v:.2f}"
+
+    for (lens, cond, views), rs in groups.items():
+        prev = " / ".join(cell(old[key(r)]["ours_max_px"], r["plain_max_px"]) if key(r) in old else "-" for r in rs)
+        plain = " / ".join(f"{r['plain_max_px']:.2f}" for r in rs)
+        out.append(
+            f"| {lens} | {cond} | {views} | {plain} | {prev} | "
+            f"{' / '.join(cell(r['ours_max_px'], r['plain_max_px']) for r in rs)} | "
+            f"{max(r['ours_max_px'] - r['plain_max_px'] for r in rs):+.2f} | "
+            f"{np.mean([r['ours_mean_px'] for r in rs]):.2f} | {np.mean([r['plain_mean_px'] for r in rs]):.2f} | "
+            f"{sum(r['ours_max_px'] <= 1 for r in rs)}/{len(rs)} | {sum(bool(r['warnings']) for r in rs)}/{len(rs)} | "
+            f"{', '.join(sorted(set(r['model'] for r in rs)))} |")
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one case, to check the script runs")
@@ -241,6 +268,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--issue", action="store_true", help="the issue's 1920x1080, 9x6-board case instead")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--table", type=Path, help="only print the table of a results JSON written before")
+    ap.add_argument("--before", type=Path, help="with --table: an earlier results JSON to show beside it")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--lenses", default="weak,strong")
     ap.add_argument("--views", default=",".join(map(str, VIEWS)))
@@ -251,7 +279,10 @@ def main(argv: list[str] | None = None) -> dict:
     VIEWS_SEL = tuple(int(v) for v in args.views.split(","))
     if args.table:
         res = json.loads(args.table.read_text())
-        print(markdown_table(res["rows"]))
+        if args.before:
+            print(before_after_table(json.loads(args.before.read_text())["rows"], res["rows"]))
+        else:
+            print(markdown_table(res["rows"]))
         return res
     cv2.setNumThreads(1)
     rows = []

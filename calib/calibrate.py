@@ -28,8 +28,8 @@ import numpy as np
 
 from calib.camera import Camera
 from calib.holdout import HoldoutResult, holdout_check
-from calib.solve import Solve, solve  # noqa: F401  (Solve: part of this module's API)
 from calib.models import OPENCV_DEFAULT, DistortionModel, candidate_models
+from calib.solve import Solve, solve
 from capture.io.errors import CaptureError
 
 STD_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
@@ -87,7 +87,7 @@ class CalibrationResult:
     std_dev: dict[str, float]  # 1-sigma of the estimated intrinsics (pixels / unitless); fixed terms absent
     model: DistortionModel = OPENCV_DEFAULT
     model_scores: dict[str, float] = field(default_factory=dict)  # hold-out RMS (px) per candidate model
-    model_evidence: dict[str, "ModelEvidence"] = field(default_factory=dict)  # per candidate model
+    model_evidence: dict[str, ModelEvidence] = field(default_factory=dict)  # per candidate model
     holdout: HoldoutResult | None = None  # the chosen model's hold-out check
     rvecs: list[np.ndarray] = field(repr=False, default_factory=list)
     tvecs: list[np.ndarray] = field(repr=False, default_factory=list)
@@ -203,7 +203,12 @@ def model_evidence(models: list[DistortionModel], solves: dict[str, Solve], obj:
                    img: list[np.ndarray], image_size: tuple[int, int], base: DistortionModel,
                    options: CalibrationOptions) -> dict[str, ModelEvidence]:
     """:class:`ModelEvidence` of every model in ``models`` (each must have a full solve in ``solves``)."""
-    from calib.uncertainty import intrinsic_covariance, pixel_grid, pixel_uncertainty, projection_difference
+    from calib.uncertainty import (
+        intrinsic_covariance,
+        pixel_grid,
+        pixel_uncertainty,
+        projection_difference,
+    )
 
     grid, _ = pixel_grid(image_size, max(4.0, float(np.hypot(*image_size)) / 100.0))
     fpp, far = options.fix_principal_point, options.fix_aspect_ratio
