@@ -216,7 +216,10 @@ def test_simpler_model_when_opencvs_extra_terms_are_undetermined():
     r = run_case(Case(18, 8, "blur", "strong"))
     assert r["model"] == "k1-k2+p", r
     assert r["ours_max_px"] < r["plain_max_px"] - 3.0, r
-    assert r["warnings"], r
+    # the run says that OpenCV's default fits the views as well and lands elsewhere (by about the
+    # 5.4 px the two differ from the truth in opposite directions)
+    (undecided,) = [w for w in r["warnings"] if w.startswith("lens model undecided: k1-k3+p ")]
+    assert float(undecided.split("by up to ")[1].split(" px")[0]) > 3.0, undecided
 
 
 def test_a_view_no_camera_can_pose_leaves_the_hold_out_check_working(tmp_path):
