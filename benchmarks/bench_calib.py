@@ -15,7 +15,9 @@ Cases: seeds x views (6, 8, 12, 20) x condition (clean: sigma 0.5 blur + noise 2
 noise 3; h264: a video, 3 frames per view (the view, a near-duplicate, a motion-blurred frame on the
 way to the next view), libx264 yuv420p crf 23) x lens (weak, strong distortion).
 
-    python benchmarks/bench_calib.py            # 3 seeds x 4 x 3 x 2 = 72 cases, 640x480
+    python benchmarks/bench_calib.py            # seeds 0-2 x 4 x 3 x 2 = 72 cases, 640x480
+    python benchmarks/bench_calib.py --first-seed 10 --seeds 10 --out /tmp/tune   # the seeds the lens
+                                                # model choice was tuned on (calib.calibrate.choose_model)
     python benchmarks/bench_calib.py --quick    # 1 case (a 6-view H.264 video)
     python benchmarks/bench_calib.py --issue    # the issue's 1920x1080 case (9x6 board, 20 views, video)
 """
@@ -180,10 +182,11 @@ def run_case(case: Case, renderer: Renderer | None = None, spec: str = SPEC, K_t
     }
 
 
-def cases(quick: bool, seeds: int, views=VIEWS) -> list[Case]:
+def cases(quick: bool, seeds: int, views=VIEWS, first_seed: int = 0) -> list[Case]:
     if quick:
         return [Case(1, 6, "h264", "weak")]
-    return [Case(s, v, c, lens) for lens in LENSES for c in CONDITIONS for v in views for s in range(seeds)]
+    return [Case(s, v, c, lens) for lens in LENSES for c in CONDITIONS for v in views
+            for s in range(first_seed, first_seed + seeds)]
 
 
 def _print_row(r: dict) -> None:
@@ -230,13 +233,42 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def before_after_table(before: list[dict], rows: list[dict]) -> str:
+    """``markdown_table`` with an earlier run's results (same cases) beside; bold: > 0.5 px worse than plain."""
+    key = lambda r: (r["lens"], r["condition"], r["views"], r["seed"])  # noqa: E731
+    old = {key(r): r for r in before}
+    out = ["| lens | input | views | plain max px (per seed) | before: ours max px | now: ours max px | "
+           "now - plain, worst | now mean px | plain mean px | now <= 1 px | runs warned | model(s) now |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["lens"], r["condition"], r["views"]), []).append(r)
+
+    def cell(v: float, plain: float) -> str:
+        return f"**{v:.2f}**" if v - plain > 0.5 else f"{v:.2f}"
+
+    for (lens, cond, views), rs in groups.items():
+        prev = " / ".join(cell(old[key(r)]["ours_max_px"], r["plain_max_px"]) if key(r) in old else "-" for r in rs)
+        plain = " / ".join(f"{r['plain_max_px']:.2f}" for r in rs)
+        out.append(
+            f"| {lens} | {cond} | {views} | {plain} | {prev} | "
+            f"{' / '.join(cell(r['ours_max_px'], r['plain_max_px']) for r in rs)} | "
+            f"{max(r['ours_max_px'] - r['plain_max_px'] for r in rs):+.2f} | "
+            f"{np.mean([r['ours_mean_px'] for r in rs]):.2f} | {np.mean([r['plain_mean_px'] for r in rs]):.2f} | "
+            f"{sum(r['ours_max_px'] <= 1 for r in rs)}/{len(rs)} | {sum(bool(r['warnings']) for r in rs)}/{len(rs)} | "
+            f"{', '.join(sorted(set(r['model'] for r in rs)))} |")
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one case, to check the script runs")
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--issue", action="store_true", help="the issue's 1920x1080, 9x6-board case instead")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--table", type=Path, help="only print the table of a results JSON written before")
+    ap.add_argument("--before", type=Path, help="with --table: an earlier results JSON to show beside it")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--lenses", default="weak,strong")
     ap.add_argument("--views", default=",".join(map(str, VIEWS)))
@@ -247,7 +279,10 @@ def main(argv: list[str] | None = None) -> dict:
     VIEWS_SEL = tuple(int(v) for v in args.views.split(","))
     if args.table:
         res = json.loads(args.table.read_text())
-        print(markdown_table(res["rows"]))
+        if args.before:
+            print(before_after_table(json.loads(args.before.read_text())["rows"], res["rows"]))
+        else:
+            print(markdown_table(res["rows"]))
         return res
     cv2.setNumThreads(1)
     rows = []
@@ -263,15 +298,21 @@ def main(argv: list[str] | None = None) -> dict:
             _print_row(r)
     else:
         renderers = {lens: Renderer(SPEC, K, d, SIZE) for lens, d in LENSES.items()}
-        for case in [c for c in cases(args.quick, args.seeds, VIEWS_SEL) if c.lens in lenses]:
+        for case in [c for c in cases(args.quick, args.seeds, VIEWS_SEL, args.first_seed) if c.lens in lenses]:
             r = run_case(case, renderers[case.lens])
             rows.append(r)
             _print_row(r)
+    excess = np.array([r["ours_max_px"] - r["plain_max_px"] for r in rows])
     res = {"rows": rows, "summary": summarise(rows),
-           "worst_excess_px": max(r["ours_max_px"] - r["plain_max_px"] for r in rows),
-           "worst_ours_max_px": max(r["ours_max_px"] for r in rows)}
+           "worst_excess_px": float(excess.max()),
+           "worst_ours_max_px": max(r["ours_max_px"] for r in rows),
+           "runs_over_half_px_worse": int(np.sum(excess > 0.5)),
+           "runs_better_same_worse": [int(np.sum(excess < -0.05)), int(np.sum(np.abs(excess) <= 0.05)),
+                                      int(np.sum(excess > 0.05))]}
     print(markdown_table(rows))
-    print(f"worst: ours max {res['worst_ours_max_px']:.3f} px; ours - plain at most {res['worst_excess_px']:+.3f} px")
+    print(f"worst: ours max {res['worst_ours_max_px']:.3f} px; ours - plain at most {res['worst_excess_px']:+.3f} px; "
+          f"{res['runs_over_half_px_worse']} of {len(rows)} runs > 0.5 px worse than plain; better / equal / worse "
+          f"(0.05 px): {' / '.join(map(str, res['runs_better_same_worse']))}")
     if not args.quick:
         args.out.mkdir(parents=True, exist_ok=True)
         write_text(args.out / ("calib_issue.json" if args.issue else "calib.json"), json.dumps(res, indent=1))

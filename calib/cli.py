@@ -36,11 +36,13 @@ def calibrate_command(
         help="After a first solve, reject views whose RMS exceeds this multiple of the median view RMS "
         "and 1 px, then recalibrate; 0 = off.")] = 3.0,
     model: Annotated[str, typer.Option(
-        help="Lens distortion model: auto (chosen by the hold-out check) or one of k1-k2, k1-k2+p, k1-k3, "
-        "k1-k3+p (OpenCV's default), k1-k6, k1-k6+p (rational).")] = "auto",
+        help="Lens distortion model: auto (OpenCV's default unless the hold-out check and the covariance "
+        "clearly support another) or one of k1-k2, k1-k2+p, k1-k3, k1-k3+p (OpenCV's default), k1-k6, "
+        "k1-k6+p (rational).")] = "auto",
     tolerance_px: Annotated[float, typer.Option(
-        help="Warn when image corners are not covered, the predicted 2-sigma uncertainty or the hold-out "
-        "spread exceeds this many pixels anywhere in the image.")] = 1.0,
+        help="Warn when image corners are not covered, or when the predicted 2-sigma uncertainty, the "
+        "hold-out spread or the difference to an equally good lens model exceeds this many pixels "
+        "anywhere in the image.")] = 1.0,
     strict: Annotated[bool, typer.Option(
         help="Fail (no camera file) instead of warning when the model extrapolates or is not determined.")] = False,
     fix_principal_point: Annotated[bool, typer.Option(
@@ -62,10 +64,11 @@ def calibrate_command(
     OpenCV and drops only unusable views (too few corners, failed geometric
     check, too blurred for sub-pixel corners, near-duplicates, outliers
     after a first solve; over --max-views the most useful are kept).
-    Calibrates with OpenCV, choosing the lens model by a hold-out check,
-    and writes the camera file, a JSON report (views used and dropped and
-    why, hold-out errors, uncertainty, warnings) and two PNGs (per-view
-    errors; coverage heat map, predicted uncertainty, hold-out spread).
+    Calibrates with OpenCV, choosing the lens model by a hold-out check and
+    the parameter covariance, and writes the camera file, a JSON report
+    (views used and dropped and why, hold-out errors, uncertainty,
+    warnings) and two PNGs (per-view errors; coverage heat map, predicted
+    uncertainty, hold-out spread).
     Warns when the model extrapolates or is not determined; --strict fails.
 
     Board SPEC grammar (lengths in mm):

@@ -18,7 +18,10 @@ It warns (and ``--strict`` fails) when the model extrapolates or is not determin
   tolerance); the distortion terms whose 1 sigma alone moves the farthest image corner by more than
   ``tolerance_px / 2`` are named as not determined;
 - the hold-out spread exceeds ``tolerance_px`` somewhere: leaving some views out changes the model
-  there by more than the tolerance (or the check could not be run at all).
+  there by more than the tolerance (or the check could not be run at all);
+- another lens model (not the rational one) predicts the left-out views within 5 % as well but
+  differs from the chosen one by more than ``tolerance_px`` somewhere: the views cannot decide
+  between them (see :func:`calib.calibrate.choose_model`).
 """
 
 from __future__ import annotations
@@ -105,6 +108,14 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
             + (f"; distortion term(s) {', '.join(loose)} not determined" if loose else "")
             + "; record more views there, or fix terms (--model)"
         )
+    rival = _rival_model(result, tolerance_px)
+    if rival:
+        name, diff = rival
+        warnings.append(
+            f"lens model undecided: {name} predicts the left-out views about as well as the chosen "
+            f"{result.model.name} but differs from it by up to {diff:.2f} px over the image: these views cannot "
+            "tell which is right; record the board in the image corners, or choose with --model"
+        )
     if len(result.views) < 6:
         warnings.append(f"only {len(result.views)} views: too few to pin the lens model and to check it by "
                         "leaving views out; record at least 6, better 15-40, over the whole image")
@@ -118,6 +129,27 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
             f"({at[0]:.0f}, {at[1]:.0f}), above the {tolerance_px:g} px tolerance; record more views"
         )
     return Diagnostics(grid, shape, sigma, spread, cov, cov_map, effects, tolerance_px, warnings, (w, h))
+
+
+def _rival_model(result, tolerance_px: float, holdout_tolerance: float = 0.05) -> tuple[str, float] | None:
+    """The non-rational candidate that predicts the left-out views within 5 % as well as the chosen model
+    and differs most from it over the image, if by more than ``tolerance_px`` (differences are measured
+    against OpenCV's default model, :class:`calib.calibrate.ModelEvidence`)."""
+    from calib.models import OPENCV_DEFAULT
+
+    evidence, scores, chosen = result.model_evidence, result.model_scores, result.model.name
+    if chosen not in evidence or OPENCV_DEFAULT.name not in evidence or not np.isfinite(scores.get(chosen, np.inf)):
+        return None
+    limit = scores[chosen] * (1.0 + holdout_tolerance)
+    if chosen != OPENCV_DEFAULT.name:
+        rivals = {OPENCV_DEFAULT.name: evidence[chosen].difference_max_px}
+    else:
+        rivals = {n: e.difference_max_px for n, e in evidence.items() if n != chosen and "k6" not in n}
+    rivals = {n: d for n, d in rivals.items() if scores.get(n, np.inf) <= limit and d > tolerance_px}
+    if not rivals:
+        return None
+    name = max(rivals, key=rivals.get)
+    return name, rivals[name]
 
 
 __all__ = ["CORNER_NAMES", "Diagnostics", "diagnose"]

@@ -6,7 +6,8 @@ there are no more views than folds). For each fold the model is calibrated on th
 that camera (``cv2.solvePnP``, IPPE then Levenberg-Marquardt) and its corners are reprojected. The
 pooled RMS of those residuals is the hold-out error: it grows when the model is too rigid (it cannot
 follow the lens) and when it is too flexible for the data (it follows noise that the left-out views do
-not share). The fold cameras are kept: how far they project from the full-data camera over the image
+not share); a left-out view that no camera can pose is left out of it (its own RMS is inf). The
+fold cameras are kept: how far they project from the full-data camera over the image
 is the model's spread under leaving views out (:func:`calib.uncertainty.projection_difference`).
 """
 
@@ -76,9 +77,10 @@ def holdout_check(obj: list[np.ndarray], img: list[np.ndarray], image_size: tupl
         for i in test:
             r = pnp_residuals(obj[i], img[i], s.K, s.dist)
             view_rms[i] = float(np.sqrt(np.mean(r ** 2)))
-            sq += float(np.sum(r ** 2))
-            count += len(r)
-    rms = float(np.sqrt(sq / count)) if count and np.isfinite(sq) else float("inf")
+            if np.all(np.isfinite(r)):  # a view no camera can pose (inf) stays out of the pooled error
+                sq += float(np.sum(r ** 2))
+                count += len(r)
+    rms = float(np.sqrt(sq / count)) if count else float("inf")
     spread = float("inf")
     if full is not None and cameras:
         from calib.uncertainty import pixel_grid, projection_difference

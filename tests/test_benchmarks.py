@@ -137,6 +137,15 @@ def test_bench_calib_quick():
     assert np.isfinite(row["ours_max_px"]) and np.isfinite(row["plain_max_px"])
 
 
+def test_bench_calib_models_quick():
+    from benchmarks.bench_calib_models import main
+
+    res = main(["--quick"])
+    assert len(res["runs"]) == 2 and "3.5/0.5" in res["summary"]
+    never_simpler, default = res["summary"]["inf/0"], res["summary"]["3.5/0.5"]
+    assert never_simpler["switched"] == 0 and default["worse_half_px"] == 0 and default["switched"] == 1
+
+
 def test_bench_overlay_quick():
     from benchmarks.bench_overlay import main
 

@@ -170,11 +170,11 @@ def test_model_choice_keeps_tangential_and_refuses_an_unstable_rational_model():
 
 
 def test_few_views_missing_the_image_corners_no_worse_than_plain_and_warned():
-    """The issue's failure: few views, none in the image corners; OpenCV's k3 runs away there."""
+    """Few views, none in the image corners: k3 is barely determined there. Whatever the model
+    choice does, the result is within 0.5 px of plain OpenCV, and a result worse than 1 px warns."""
     dist = np.array([-0.2, 0.08, 0.0, 0.0, 0.0])
     objp = parse_board(SPEC).corner_object_points().astype(np.float64)
     truth = Camera(K, dist, SIZE)
-    ours_all, plain_all = [], []
     for seed in range(6):
         poses = operator_poses(parse_board(SPEC), K, SIZE, 6, seed=seed, distance=(420, 520), min_visible=1.0)
         rng = np.random.default_rng(seed)
@@ -187,11 +187,8 @@ def test_few_views_missing_the_image_corners_no_worse_than_plain_and_warned():
         res = calibrate_views(obj, img, [f"v{i}" for i in range(6)], SIZE, options)
         ours, plain = model_error(truth, res.camera)[0], model_error(truth, _plain(obj, img))[0]
         assert ours <= plain + 0.5, (seed, ours, plain)
-        if ours > 1.0:  # the run must say so
-            assert diagnose(res, options).warnings, seed
-        ours_all.append(ours)
-        plain_all.append(plain)
-    assert sum(ours_all) < 0.8 * sum(plain_all)  # the hold-out check leaves the runaway k3 out
+        if ours > 1.0:  # the run must say so, and where
+            assert any("not covered" in w for w in diagnose(res, options).warnings), seed
 
 
 # ---------------------------------------------------------------------------------- against OpenCV
@@ -199,11 +196,46 @@ def test_few_views_missing_the_image_corners_no_worse_than_plain_and_warned():
     Case(0, 6, "clean", "strong"),
     Case(1, 8, "blur", "weak"),
     Case(2, 6, "h264", "strong"),
+    # the three runs of the 72-run sweep that came out more than 0.5 px worse than plain OpenCV when a
+    # simpler model was chosen by its hold-out error alone (2.56 vs 1.51, 2.03 vs 1.43, 5.59 vs 5.09 px)
+    Case(0, 6, "h264", "strong"),
+    Case(2, 20, "blur", "strong"),
+    Case(2, 6, "blur", "strong"),
 ], ids=lambda c: f"{c.lens}-{c.condition}-{c.views}views-seed{c.seed}")
 def test_never_worse_than_plain_opencv(case):
     r = run_case(case)
     assert r["ours_max_px"] <= r["plain_max_px"] + 0.5, r
     assert r["ours_max_px"] <= 1.0 or r["warnings"], r  # beyond 1 px the run must say it is unsure
+
+
+def test_simpler_model_when_opencvs_extra_terms_are_undetermined():
+    """The model choice still drops k3 when OpenCV's default cannot determine it at all. On this render
+    (8 blurred views, none in the image corners; seed 18 is one of the seeds the thresholds were set
+    on) OpenCV's k3 runs away: its predicted uncertainty is 7-8 times k1-k2+p's, plain is 6.8 px off
+    and k1-k2+p 1.4 px."""
+    r = run_case(Case(18, 8, "blur", "strong"))
+    assert r["model"] == "k1-k2+p", r
+    assert r["ours_max_px"] < r["plain_max_px"] - 3.0, r
+    # and it says that OpenCV's default fits these views as well but lands several px elsewhere
+    (undecided,) = [w for w in r["warnings"] if w.startswith("lens model undecided: k1-k3+p ")]
+    assert float(undecided.split("by up to ")[1].split(" px")[0]) > 3.0, undecided
+
+
+def test_a_view_no_camera_can_pose_leaves_the_hold_out_check_working(tmp_path):
+    """In this H.264 take one kept frame shows only 6 corners in two rows, which solvePnP (IPPE)
+    cannot pose. It once made every model's hold-out error inf (no model choice, a warning that the
+    check failed) and the report unwritable (JSON has no inf). Now it is left out of the pooled error
+    and reported as null."""
+    from benchmarks.bench_calib import render_case
+    from calib.pipeline import CalibrateSettings, run_calibrate
+
+    inp, _images, _truth = render_case(Case(12, 12, "h264", "weak"), tmp_path)
+    out = run_calibrate(CalibrateSettings(input=inp, board=SPEC, out=tmp_path / "cam.json", progress=False))
+    report = json.loads(out.report.read_text())
+    assert all(np.isfinite(v) for v in report["model_holdout_rms_px"].values()), report["model_holdout_rms_px"]
+    unposed = [v for v in report["views"] if v["holdout_rms_px"] is None]
+    assert len(unposed) == 1 and unposed[0]["corners"] == 6, unposed
+    assert not any("hold-out check failed" in w for w in report["warnings"])
 
 
 def test_twenty_clean_views_none_dropped():
