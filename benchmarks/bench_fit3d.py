@@ -132,9 +132,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--peak", default="0.3,0.8", help="range of the held-out expressions' peak weights")
     ap.add_argument("--control-frames", type=int, default=90, help="frames of a control sequence made of TRAINING "
                     "shapes only (in the span of GBS: separates the fit and actor floor from generalisation; 0: none)")
-    ap.add_argument("--preset", default="default", help="fit preset: default or paper")
+    ap.add_argument("--preset", default="default", help="fit preset of capture fit3d: default, networks or paper")
     ap.add_argument("--iterations", type=int, help="override the preset's first-window iterations")
-    ap.add_argument("--samples", type=int, default=1000, help="fitted vertices (capture fit3d: 1000)")
+    ap.add_argument("--samples", type=int, help="fitted vertices (default: capture fit3d's for the preset)")
     ap.add_argument("--window", type=int, default=30)
     ap.add_argument("--overlap", type=int, default=6)
     ap.add_argument("--threads", type=int, default=1)
@@ -145,10 +145,10 @@ def main(argv: list[str] | None = None) -> dict:
 
     from capture.actor.package import load_actor
     from capture.io.atomic import write_text
-    from models.fit import FIT_PRESETS
+    from models.fit import FIT3D_PRESETS
 
     torch.set_num_threads(args.threads)
-    settings = FIT_PRESETS[args.preset]
+    settings = FIT3D_PRESETS[args.preset]
     if args.iterations:
         settings = replace(settings, iterations=args.iterations)
     if args.quick:

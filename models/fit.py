@@ -21,15 +21,17 @@ The networks correct a per-frame *base* (head and jaw pose, one offset per expre
 :class:`SequenceFit`). The paper's fit keeps the base at the initial head pose with the jaw at rest;
 the default preset solves it by Levenberg-Marquardt (:mod:`models.fit_lm`) with the networks held
 fixed, which converges in a few steps where Adam needs hundreds, and on 2D landmark fits that solve
-is the whole fit (``adam_on_landmarks``); 3D fits then run Adam on the networks for the spatially
-varying detail and polish the base again.
+is the whole fit (``adam_on_landmarks``). The spatially varying detail of 3D fits comes, by default
+(:data:`FIT3D_PRESETS`), from a dense per-point coefficient field solved in closed form
+(:mod:`models.fit_field`); with Adam iterations (the ``networks`` and ``paper`` presets) F_T/F_W are
+trained for it and the base is polished again.
 
 The fitter owns every per-frame parameter (:class:`SequenceFit`); the actor model stays frozen.
 
 Modules: settings and presets in :mod:`models.fit_settings`, the state (:class:`SequenceFit`,
 :class:`ActorAtPoints`, :class:`Observations`) in :mod:`models.fit_state`, the energy in
 :mod:`models.fit_energy`, the Levenberg-Marquardt base solve in :mod:`models.fit_lm` and the
-per-point coefficient field of 2D fits (``--preset field``) in :mod:`models.fit_field`; this module
+per-point coefficient field (``--preset field`` of 2D fits, the 3D default) in :mod:`models.fit_field`; this module
 runs them (:func:`fit_sequence`) and re-exports their public names. None imports this one.
 """
 
@@ -50,7 +52,7 @@ from models.fit_energy import (  # noqa: F401
 )
 from models.fit_field import solve_field
 from models.fit_lm import solve_base
-from models.fit_settings import FIT_PRESETS, FitSettings  # noqa: F401
+from models.fit_settings import FIT3D_PRESETS, FIT_PRESETS, FitSettings  # noqa: F401
 from models.fit_state import (  # noqa: F401
     ActorAtPoints,
     FramePose,
@@ -111,7 +113,7 @@ def fit_sequence(actor: ActorAtPoints, obs: Observations, settings: FitSettings,
             before = sum(history[-2 * every:-every]) / every
             if before - last < settings.early_stop_tol * abs(before):
                 break
-    field = settings.field_centres > 0 and settings.field_iterations > 0 and obs.points2d is not None
+    field = settings.field_centres > 0 and settings.field_iterations > 0
     if field:
         n_lm += solve_field(fit, actor, obs, settings.field_iterations)
     if settings.lm_polish_iterations > 0:

@@ -1,4 +1,6 @@
-"""Settings of a sequence fit (:class:`FitSettings`) and the named presets (:data:`FIT_PRESETS`).
+"""Settings of a sequence fit (:class:`FitSettings`) and the named presets: :data:`FIT_PRESETS` for
+fits to 2D landmarks (``capture run``), :data:`FIT3D_PRESETS` for fits to registered meshes
+(``capture fit3d``).
 
 Shared by the fit's state (:mod:`models.fit_state`), energy (:mod:`models.fit_energy`) and solvers
 (:mod:`models.fit`, :mod:`models.fit_lm`); see :mod:`models.fit` for the method.
@@ -6,7 +8,7 @@ Shared by the fit's state (:mod:`models.fit_state`), energy (:mod:`models.fit_en
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 
 @dataclass(frozen=True)
@@ -62,10 +64,10 @@ class FitSettings:
     Levenberg-Marquardt solve of the base alone and the networks keep their zero start (on synthetic
     takes with 1,000 landmarks the Adam phase changed the error by < 0.001 mm at 10x the time)."""
     field_centres: int = 0
-    """Per-point coefficient field of 2D fits (:mod:`models.fit_field`): ``w_j(c)`` gets
-    ``sum_b phi_b(c) a_jb`` with ``phi`` normalised Gaussians around this many centres (farthest-point
-    samples of the fit points) and per-frame ``a_jb (E,)`` solved by Gauss-Newton with the poses fixed.
-    0 = none (the paper; 3D fits leave the spatial detail to F_W)."""
+    """Per-point coefficient field (:mod:`models.fit_field`): ``w_j(c)`` gets ``sum_b phi_b(c) a_jb``
+    with ``phi`` normalised Gaussians around this many centres (farthest-point samples of the fit
+    points) and per-frame ``a_jb (E,)`` solved by Gauss-Newton with the poses fixed. 0 = none (the
+    paper, which leaves the spatial detail to F_W)."""
     field_sigma_mm: float = 12.0
     """Width of the field's Gaussians (mm on the template)."""
     field_weight: float = 0.0
@@ -109,4 +111,19 @@ FIT_PRESETS: dict[str, FitSettings] = {
                          jaw_prior_weight=1.0, jaw_prior_target="expressions", robust_px=1.0,
                          adam_on_landmarks=False, field_centres=16, field_iterations=2, field_weight=1.0,
                          field_temporal_weight=1.0, field_motion_weight=10.0),
+}
+
+
+#: Presets of fits to registered 3D meshes (``capture fit3d``; :func:`capture.fit.take.fit_meshes`).
+#: ``default``: the base by Levenberg-Marquardt, then a dense per-point coefficient field (256 centres,
+#: sigma 8 mm) solved by Gauss-Newton with every vertex constrained, light coefficient priors (3D data
+#: leave nothing ambiguous), no Adam: on held-out ICT performances (benchmarks/bench_fit3d.py, tuning
+#: seed 100) 0.111 mm against 0.284 mm for ``networks`` (the 3D default before: LM, Adam on F_T/F_W,
+#: LM polish, 1,000 vertices) and 0.759 mm for the 19-shape blendshape fit; in span (training shapes)
+#: 0.060 against 0.106 mm, at about the same time per frame. ``paper``: the paper's settings.
+FIT3D_PRESETS: dict[str, FitSettings] = {
+    "default": replace(FIT_PRESETS["default"], iterations=0, warm_iterations=None, coeff_weight=1e-4,
+                       field_centres=256, field_sigma_mm=8.0, field_iterations=3, field_weight=1e-4),
+    "networks": FIT_PRESETS["default"],
+    "paper": FIT_PRESETS["paper"],
 }

@@ -158,11 +158,14 @@ class SequenceFit(nn.Module):
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """As :meth:`torch.nn.Module.load_state_dict`; states saved without a coefficient field (older
-        runs, or fits without one) load with the field at zero."""
+        runs, or fits without one) load with the field at zero, and a field of another number of
+        centres than ``settings.field_centres`` (capped to the fitted points) loads as it is."""
         state = dict(state_dict)
         for k in ("field_centres", "field"):
             if k not in state:
                 state[k] = getattr(self, k).clone()
+            elif state[k].shape != getattr(self, k).shape:   # a field of another size (centres capped to the points)
+                self.register_buffer(k, getattr(self, k).new_zeros(state[k].shape))
         return super().load_state_dict(state, strict=strict, assign=assign)
 
     def field_basis(self, points: torch.Tensor) -> torch.Tensor:

@@ -134,3 +134,66 @@ def test_jaw_prior_towards_the_expressions_jaw():
     ref = float(terms["total"] - terms["temporal"])
     assert abs(_Problem(fit, jaw_actor, obs).energy() - ref) < 1e-9 * abs(ref)
     assert float(terms["jaw"]) > 0
+
+
+def test_independent_and_shared_blocks_match_a_dense_solve():
+    """U None: frames independent; D (1, m, m): one matrix for every frame (the 3D fits' case)."""
+    g = torch.Generator().manual_seed(3)
+    J, m = 4, 6
+    X = torch.randn(m, m, generator=g, dtype=torch.float64)
+    D1 = X @ X.T + m * torch.eye(m, dtype=torch.float64)
+    b = torch.randn(J, m, generator=g, dtype=torch.float64)
+    ref = torch.linalg.solve(D1, b.T).T
+    torch.testing.assert_close(solve_block_tridiagonal(D1[None], None, b), ref, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(solve_block_tridiagonal(D1.expand(J, m, m).clone(), None, b), ref, rtol=1e-10,
+                               atol=1e-12)
+
+
+def _problem_3d(field_weight=0.3):
+    actor = toy_actor(P=40, E=3, seed=4)
+    head_R, head_t, face = truth(toy_actor(P=40, E=4, seed=4), J=4)
+    s = FitSettings(code_dim=4, hidden=8, field_centres=5, field_sigma_mm=40.0, field_weight=field_weight,
+                    coeff_weight=0.2, field_iterations=3)
+    fit = SequenceFit(4, 3, s, head_R, head_t).double()
+    with torch.no_grad():
+        fit.field_centres.copy_(farthest_points(actor.points, 5))
+        fit.field.copy_(0.1 * torch.randn(4, 5, 3, dtype=torch.float64))
+        fit.coeff0.copy_(0.2 * torch.randn(4, 3, dtype=torch.float64))
+    return fit, actor, Observations(points3d=face)
+
+
+def test_field_energy_and_gradient_with_3d_points():
+    """The field's energy on 3D points equals the fitter's (3D position + coefficient terms + the field's
+    prior), and its Gauss-Newton gradient is half autograd's; the matrix is one for all frames."""
+    fit, actor, obs = _problem_3d()
+    prob = _FieldProblem(fit, actor, obs)
+    assert prob.constant_hessian
+    a = fit.field.detach().clone().requires_grad_(True)
+    e = field_energy(prob, a)
+    with torch.no_grad():
+        terms = fitting_losses(fit, actor, obs)
+    ref = terms["3d"] + terms["coeff"] + fit.settings.field_weight * fit.field.square().mean()
+    torch.testing.assert_close(e.detach(), ref, rtol=1e-9, atol=1e-12)
+    grad, = torch.autograd.grad(e, a)
+    D, U, g = prob.normal_equations(a.detach())
+    assert D.shape[0] == 1 and U is None
+    torch.testing.assert_close(2 * g.reshape(grad.shape), grad, rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(prob.normal_equations(a.detach(), hessian=False)[2], g)
+
+
+def test_field_solve_recovers_a_field_from_3d_points():
+    fit, actor, _ = _problem_3d(field_weight=0.0)
+    s = replace(fit.settings, coeff_weight=0.0, lm_tol=1e-14, field_iterations=30)
+    truth_fit = SequenceFit(4, 3, s, fit.head_R0, fit.head_t0).double()
+    truth_fit.load_state_dict(fit.state_dict())
+    with torch.no_grad():
+        truth_fit.field.copy_(0.3 * torch.randn(4, 5, 3, dtype=torch.float64))
+        pose = truth_fit.poses()
+        from models.fit import pose_face
+        face = pose_face(actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t, truth_fit.coefficients(actor))
+    start = SequenceFit(4, 3, s, fit.head_R0, fit.head_t0).double()
+    start.load_state_dict(fit.state_dict())
+    with torch.no_grad():
+        start.field.zero_()
+    solve_field(start, actor, Observations(points3d=face), 30)
+    torch.testing.assert_close(start.field, truth_fit.field, rtol=0, atol=1e-6)

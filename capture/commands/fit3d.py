@@ -17,7 +17,8 @@ def fit3d_command(
     units: str = typer.Option("mm", "--units", help="Units of the meshes: mm, cm, m, in."),
     fps: float = typer.Option(30.0, "--fps", help="Frame rate of the sequence (USD time samples)."),
     formats: Optional[str] = typer.Option(None, "--formats", help="Exports: obj, ply, usd, npz (default obj,usd,npz)."),
-    preset: str = typer.Option("default", "--preset", help="Fit preset: default or paper."),
+    preset: str = typer.Option("default", "--preset", help="Fit preset: default (dense per-point coefficient "
+                               "field, every vertex), networks (Adam on F_T/F_W, 1,000 vertices) or paper."),
     seed: int = typer.Option(0, "--seed", help="Random seed of the fit."),
     iterations: Optional[int] = typer.Option(None, "--iterations", help="Fit iterations of the first window "
                                              "(default: the preset's; later windows use at most as many)."),

@@ -38,7 +38,7 @@ import contextlib
 import hashlib
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
@@ -49,7 +49,7 @@ from calib.camera import Camera
 from calib.projection import camera_tensors, project_points
 from capture.io.atomic import atomic_path
 from capture.fit.init import PnPSettings, initial_head_poses, rigid_align
-from models.fit import (FIT_PRESETS, ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence,
+from models.fit import (FIT3D_PRESETS, FIT_PRESETS, ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence,
                         pose_face)
 
 __all__ = ["FrameFit", "fit_take", "fit_meshes", "resolve_settings", "resolved_settings_dict", "window_plan",
@@ -112,24 +112,26 @@ class FrameFit:
     coefficients_base: np.ndarray | None = None  # (E,) the per-frame base: w_j(c) = base + F_W(z_j, c)
 
 
-def resolve_settings(settings: FitSettings | str | None) -> FitSettings:
-    """A :class:`FitSettings` from itself, a preset name (``default``, ``paper``) or None (default)."""
+def resolve_settings(settings: FitSettings | str | None, kind: str = "2d") -> FitSettings:
+    """A :class:`FitSettings` from itself, a preset name or None (``default``); names are looked up in
+    :data:`models.fit.FIT_PRESETS` for ``kind`` ``2d`` (landmarks) and in :data:`FIT3D_PRESETS` for ``3d``."""
+    presets = FIT3D_PRESETS if kind == "3d" else FIT_PRESETS
     if settings is None:
-        return FIT_PRESETS["default"]
+        return presets["default"]
     if isinstance(settings, str):
-        if settings not in FIT_PRESETS:
-            raise ValueError(f"unknown fit preset '{settings}'; choose one of {', '.join(FIT_PRESETS)}")
-        return FIT_PRESETS[settings]
+        if settings not in presets:
+            raise ValueError(f"unknown fit preset '{settings}'; choose one of {', '.join(presets)}")
+        return presets[settings]
     if not isinstance(settings, FitSettings):
         raise TypeError(f"settings must be FitSettings or a preset name, got {type(settings).__name__}")
     return settings
 
 
 def resolved_settings_dict(settings: FitSettings | str | None, window: int, overlap: int,
-                           pnp: PnPSettings | None = None, threads: int | None = None) -> dict:
+                           pnp: PnPSettings | None = None, threads: int | None = None, kind: str = "2d") -> dict:
     """Everything that decides a take fit, as plain data (for reports and cache keys)."""
-    s = resolve_settings(settings)
-    preset = next((k for k, v in FIT_PRESETS.items() if v == s), None)
+    s = resolve_settings(settings, kind)
+    preset = next((k for k, v in (FIT3D_PRESETS if kind == "3d" else FIT_PRESETS).items() if v == s), None)
     return {"preset": preset, "fit": s.to_dict(), "window": int(window), "overlap": int(overlap),
             "pnp": (pnp or PnPSettings()).to_dict(), "threads": threads, "blend": "smoothstep over the overlap"}
 
@@ -396,6 +398,8 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
                  threads: int | None, base_key: str, total: int | None, K, dist,
                  timings: dict | None = None) -> Iterator[FrameFit]:
     tm = timings if timings is not None else {}
+    if settings.field_centres > fit_actor.points.shape[0]:   # at most one field centre per fitted point
+        settings = replace(settings, field_centres=int(fit_actor.points.shape[0]))
     for k in ("solve_s", "outputs_s", "iterations", "lm_iterations", "windows_solved", "windows_cached"):
         tm.setdefault(k, 0)
     if cache_dir is not None:
@@ -537,26 +541,29 @@ def fit_take(actor, landmarks: TakeLandmarks, camera: Camera, how: WindowedFit =
 
 
 def fit_meshes(actor, meshes: np.ndarray | Iterable[np.ndarray], how: WindowedFit = WindowedFit(),
-               n_samples: int = 1000, progress: Callable[[int, int | None], None] | None = None,
+               n_samples: int | None = None, progress: Callable[[int, int | None], None] | None = None,
                timings: dict | None = None) -> Iterator[FrameFit]:
     """Fit ``actor`` to a registered mesh sequence (``capture fit3d``); yields :class:`FrameFit` per frame.
 
     ``meshes`` is ``(T, V, 3)`` or an iterator of ``(V, 3)`` arrays in the template's vertex order
-    (mm, any rigid frame). The 3D position loss uses ``n_samples`` farthest-point samples of the
-    template vertices; outputs are evaluated at all vertices and ``error3d_mm`` is their mean
-    distance to the given mesh. The initial head pose per frame is the rigid (Kabsch) alignment of
-    the actor's neutral at the samples.
+    (mm, any rigid frame). ``how.settings`` names a preset of :data:`models.fit.FIT3D_PRESETS`. The 3D
+    position loss uses ``n_samples`` farthest-point samples of the template vertices (None: every
+    vertex with a coefficient field, whose solve grows mildly with them, else 1,000); outputs are
+    evaluated at all vertices and ``error3d_mm`` is their mean distance to the given mesh. The initial
+    head pose per frame is the rigid (Kabsch) alignment of the actor's neutral at the samples.
     """
-    s = resolve_settings(how.settings)
+    s = resolve_settings(how.settings, "3d")
     window, overlap, device = how.window, how.overlap, how.device
     _check_window(window, overlap)
     tv = np.asarray(actor.template.vertices, np.float64)
+    if n_samples is None:
+        n_samples = len(tv) if s.field_centres > 0 and s.field_iterations > 0 else 1000
     idx = farthest_point_sample(tv, n_samples)
     fit_actor = _query(actor, tv[idx], device)
     out_actor = _query(actor, tv, device)
     total = len(meshes) if hasattr(meshes, "__len__") else None
     src = _MeshSource(meshes, idx, fit_actor.neutral.cpu().double().numpy(), torch.float32, device)
-    base = _fingerprint(CACHE_VERSION, "3d", resolved_settings_dict(s, window, overlap), n_samples,
+    base = _fingerprint(CACHE_VERSION, "3d", resolved_settings_dict(s, window, overlap, kind="3d"), n_samples,
                         fit_actor.neutral, out_actor.neutral)
     return _run_windows(src, fit_actor, out_actor, s, window, overlap,
                         None if how.cache_dir is None else Path(how.cache_dir), progress, how.threads, base, total,

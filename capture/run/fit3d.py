@@ -77,7 +77,7 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
         raise CaptureError("--formats overlay needs a video; fit3d exports obj, ply, usd and npz")
     if not cfg.fps > 0:
         raise CaptureError(f"--fps must be positive, got {cfg.fps}")
-    settings = resolve_fit_settings(cfg.preset, cfg.seed, cfg.iterations)
+    settings = resolve_fit_settings(cfg.preset, cfg.seed, cfg.iterations, kind="3d")
     actor = load_actor(cfg.actor, device=cfg.device)
     files, meshes = load_mesh_sequence(cfg.meshes, cfg.units, len(actor.template.vertices))
     out = Path(cfg.out) if cfg.out is not None else Path("runs") / Path(cfg.meshes).name

@@ -172,15 +172,17 @@ class RunInputs:
     notes: list[str] = field(default_factory=list)
 
 
-def resolve_fit_settings(preset: str, seed: int, iterations: int | None = None):
-    """The fit preset with ``seed`` and, when given, ``iterations`` (later windows: at most as many)."""
+def resolve_fit_settings(preset: str, seed: int, iterations: int | None = None, kind: str = "2d"):
+    """The fit preset with ``seed`` and, when given, ``iterations`` (later windows: at most as many);
+    ``kind`` ``2d`` (landmark fits, :data:`models.fit.FIT_PRESETS`) or ``3d`` (mesh fits, ``FIT3D_PRESETS``)."""
     from dataclasses import replace
 
-    from models.fit import FIT_PRESETS
+    from models.fit import FIT3D_PRESETS, FIT_PRESETS
 
-    if preset not in FIT_PRESETS:
-        raise CaptureError(f"unknown fit preset '{preset}'; use one of {', '.join(FIT_PRESETS)}")
-    s = replace(FIT_PRESETS[preset], seed=int(seed))
+    presets = FIT3D_PRESETS if kind == "3d" else FIT_PRESETS
+    if preset not in presets:
+        raise CaptureError(f"unknown fit preset '{preset}'; use one of {', '.join(presets)}")
+    s = replace(presets[preset], seed=int(seed))
     if iterations is not None:
         if iterations < 1:
             raise CaptureError(f"--iterations must be at least 1, got {iterations}")
