@@ -327,6 +327,40 @@ def test_joining_a_cluster_that_is_not_there_is_one_line(monkeypatch, tmp_path):
     assert find_token() is None
 
 
+def test_joining_a_cluster_of_another_ray_version_names_the_skew(monkeypatch, tmp_path):
+    """A head that answers with another Ray release in its metadata: one line naming both versions. The
+    head is a listening socket (the reachability check) and a stand-in GCS client (Ray's own class,
+    replaced: a second Ray release cannot be installed here)."""
+    import json
+    import socket
+    import sys
+
+    import ray
+    import ray._raylet
+
+    from capture.batch.cluster import probe_cluster
+
+    class OtherRelease:
+        def __init__(self, address):
+            self.address = address
+
+        def internal_kv_get(self, key, namespace=None, timeout=None):
+            assert key == b"CLUSTER_METADATA"
+            return json.dumps({"ray_version": "1.13.0", "python_version": "3.7.16"}).encode()
+
+    monkeypatch.setattr(ray._raylet, "GcsClient", OtherRelease)
+    with socket.socket() as head:
+        head.bind(("0.0.0.0", 0))   # Ray turns 127.0.0.1 into this node's address
+        head.listen()
+        address = f"127.0.0.1:{head.getsockname()[1]}"
+        with pytest.raises(CaptureError) as exc:
+            probe_cluster(address, None, tmp_path / "ray.log")
+    msg = str(exc.value)
+    ours = f"Ray {ray.__version__} on Python {sys.version_info[0]}.{sys.version_info[1]}"
+    assert "version skew: the cluster runs Ray 1.13.0 on Python 3.7" in msg and ours in msg, msg
+    assert address in msg and "\n" not in msg
+
+
 def test_shoot_file_mistakes_are_one_line_errors(tmp_path, monkeypatch):
     monkeypatch.delenv("CAPTURE_ACTORS", raising=False)
     ok = '[defaults]\nactor = "anna"\n\n[[take]]\nvideo = "v/t1.mp4"\n'
