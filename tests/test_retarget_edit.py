@@ -98,7 +98,7 @@ def test_retarget_plays_known_parameters_on_b(actors, fitted, tmp_path):
     assert np.linalg.norm(fit_a - truth_b, axis=-1).mean() > 10 * err_b.mean()
 
     # The replay equals a slow per-frame reference: B's AnatomicalFaceModel.shape with A's coefficient field
-    # F_W(z_j, c_A) + coeff0_j at the corresponding vertices, then the head transform (frames 0..3 lie in the first window
+    # F_W(z_j, c_A) + per-point field + coeff0_j at the corresponding vertices, then the head transform (frames 0..3 lie in the first window
     # only, so no overlap blend is involved).
     from capture.actor.package import load_actor
     from models.fit import FitSettings, SequenceFit
@@ -116,8 +116,13 @@ def test_retarget_plays_known_parameters_on_b(actors, fitted, tmp_path):
         pose = sf.poses()
         anat_b = B.model(vb)
         for j in range(4):
-            # (V, E) at A's points: F_W's field plus the frame's base coefficients
+            # (V, E) at A's points: F_W's field, the per-point coefficient field (normalised Gaussians
+            # around its centres, at A's template points in mm) and the frame's base coefficients
             w = sf.F_W(torch.cat([sf.codes[j].expand(len(va), -1), x], 1)) + sf.coeff0[j]
+            if sf.field.shape[1]:
+                g = torch.exp(-torch.cdist(va.double(), sf.field_centres.double()).square()
+                              / (2 * settings.field_sigma_mm ** 2))
+                w = w + ((g / g.sum(1, keepdim=True)) @ sf.field[j].double()).float()
             local = B.model.shape(anat_b, matrix_to_rot6d(pose.jaw_R[j:j + 1]), pose.jaw_t[j:j + 1], w[None])[0]
             ref = (local @ pose.head_R[j].T + pose.head_t[j]).numpy()
             assert np.abs(ref - got_b[j]).max() < 2e-3  # OBJ keeps 4 decimals; float32 sums
