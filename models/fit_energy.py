@@ -40,6 +40,14 @@ def robust_2d(r2: torch.Tensor, robust_px: float) -> torch.Tensor:
     return 2 * c2 * (torch.sqrt(1 + r2 / c2) - 1)  # pseudo-Huber: r^2 near 0, 2c|r| far
 
 
+def irls_sqrt_weights(r: torch.Tensor, w2d: torch.Tensor, robust_px: float) -> torch.Tensor:
+    """``(J, P, 1)`` square roots of the Gauss-Newton weights of 2D residuals ``r (J, P, 2)`` px with
+    confidences ``w2d (J, P)``: the pseudo-Huber loss of :func:`robust_2d` as iteratively reweighted
+    least squares (weight ``1 / sqrt(1 + |r|^2 / c^2)``), normalised like the 2D term's weighted mean."""
+    drho = torch.ones_like(r[..., 0]) if robust_px <= 0 else 1 / torch.sqrt(1 + r.square().sum(-1) / robust_px ** 2)
+    return torch.sqrt(w2d * drho / w2d.sum().clamp_min(1e-12))[..., None]
+
+
 def observation_weights(obs: Observations, dtype: torch.dtype) -> torch.Tensor:
     """``(J, P)`` weights of the 2D landmarks: confidence where finite, 0 where missing."""
     valid = torch.isfinite(obs.points2d).all(-1)

@@ -46,7 +46,7 @@ import math
 import torch
 
 from calib.projection import project_points
-from models.fit_energy import monocular_priors, observation_weights, robust_2d
+from models.fit_energy import irls_sqrt_weights, monocular_priors, observation_weights, robust_2d
 from models.fit_lm import projection_jacobian
 from models.fit_state import ActorAtPoints, Observations, SequenceFit, rbf_basis
 from models.lbs import lbs_jaw
@@ -184,22 +184,21 @@ class _FieldProblem:
         if self.p2d is not None:
             uv, Jp = projection_jacobian(x, self.K, self.dist)                            # (J, P, 2), (J, P, 2, 3)
             r = uv - self.p2d
-            rp = s.robust_px
-            drho = torch.ones_like(r[..., 0]) if rp <= 0 else 1 / torch.sqrt(1 + r.square().sum(-1) / rp ** 2)
-            sw = torch.sqrt(self.w2d * drho / self.w2d.sum().clamp_min(1e-12))[..., None]  # (J, P, 1)
+            sw = irls_sqrt_weights(r, self.w2d, s.robust_px)                             # (J, P, 1)
             # G_p = sw Jp R_g E_p^T (2, E): the landmark residual's derivative wrt w_j(c_p)
             JR = torch.einsum("jpia,jab->jpib", sw[..., None] * Jp, self.R)
             G = torch.einsum("jpib,peb->jpie", JR, self.E_basis)                         # (J, P, 2, E)
             Q = Q + torch.einsum("jpie,jpif->jpef", G, G)                                 # (J, P, E, E)
             gp = gp + torch.einsum("jpie,jpi->jpe", G, sw * r)                           # (J, P, E)
+        EE = torch.einsum("pec,pfc->pef", self.E_basis, self.E_basis)[None] if hessian else 0   # (1, P, E, E)
         if self.p3d is not None:  # residual (x - p3d) / unit / sqrt(J P); its derivative R_g E_p^T / unit / sqrt(J P)
             k = 1.0 / (J * P * s.length_unit_mm ** 2)
-            Q = Q + k * torch.einsum("pec,pfc->pef", self.E_basis, self.E_basis)[None]
+            Q = Q + k * EE
             gp = gp + k * torch.einsum("pec,jpc->jpe", self.E_basis,
                                        torch.einsum("jba,jpb->jpa", self.R, x - self.p3d))
         if s.field_motion_weight > 0:  # residual sqrt(k) E_p^T phi_p a_j / unit per point
             k = s.field_motion_weight / (J * P * s.length_unit_mm ** 2)
-            Q = Q + k * torch.einsum("pec,pfc->pef", self.E_basis, self.E_basis)[None]
+            Q = Q + k * EE
             gp = gp + k * torch.einsum("pec,jpc->jpe", self.E_basis, self.displacement(a))
         g = torch.einsum("pb,jpe->jbe", self.phi, gp).reshape(J, m)
         w = self.m + torch.einsum("pb,jbe->jpe", self.phi, a)                             # (J, P, E)
@@ -283,14 +282,20 @@ def field_energy(prob: _FieldProblem, a: torch.Tensor) -> torch.Tensor:
 def solve_field(fit: SequenceFit, actor: ActorAtPoints, obs: Observations, iterations: int) -> int:
     """Minimise the field energy over ``fit.field`` (Gauss-Newton with Marquardt damping); in place.
 
-    Sets ``fit.field_centres`` (farthest points of ``actor.points``) when they are still all zero.
+    Sets ``fit.field_centres`` (farthest points of ``actor.points``) when they are still all zero; with
+    fewer points than centres, every point is a centre and the field's buffers shrink to match.
     Returns the number of linearisations.
     """
     if fit.field.shape[1] == 0 or iterations <= 0 or (obs.points2d is None and obs.points3d is None):
         return 0
     with torch.no_grad():
         if not bool(fit.field_centres.any()):
-            fit.field_centres.copy_(field_centres(actor, fit.field.shape[1]))
+            centres = field_centres(actor, fit.field.shape[1])
+            if centres.shape[0] != fit.field.shape[1]:   # fewer fitted points than centres: one per point
+                fit.register_buffer("field", fit.field.new_zeros(fit.field.shape[0], centres.shape[0],
+                                                                 fit.field.shape[2]))
+                fit.register_buffer("field_centres", fit.field_centres.new_zeros(centres.shape))
+            fit.field_centres.copy_(centres)
     prob = _FieldProblem(fit, actor, obs)
     a, it = (_solve_constant if prob.constant_hessian else _solve_damped)(prob, iterations, fit.settings.lm_tol)
     with torch.no_grad():

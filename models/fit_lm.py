@@ -27,6 +27,7 @@ import torch
 
 from calib.projection import project_points
 from models.fit_energy import (
+    irls_sqrt_weights,
     jaw_prior_target,
     monocular_priors,
     observation_weights,
@@ -138,9 +139,7 @@ class _Problem:
         if self.p2d is not None:
             uv, Jp = projection_jacobian(x, self.K, self.dist)                        # (J, P, 2), (J, P, 2, 3)
             r = uv - self.p2d
-            rp = s.robust_px
-            drho = torch.ones_like(r[..., 0]) if rp <= 0 else 1 / torch.sqrt(1 + r.square().sum(-1) / rp ** 2)
-            sw = torch.sqrt(self.w2d * drho / self.w2d.sum().clamp_min(1e-12))[..., None]  # (J, P, 1)
+            sw = irls_sqrt_weights(r, self.w2d, s.robust_px)                             # (J, P, 1)
             Jr = self._jacobian(sw[..., None] * Jp, y, jaw_q, pose.head_R)          # (J, P, 2, n)
             Hb += _gram(Jr)
             gb += torch.einsum("jpia,jpi->ja", Jr, sw * r)

@@ -38,7 +38,7 @@ import contextlib
 import hashlib
 import json
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
@@ -398,8 +398,6 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
                  threads: int | None, base_key: str, total: int | None, K, dist,
                  timings: dict | None = None) -> Iterator[FrameFit]:
     tm = timings if timings is not None else {}
-    if settings.field_centres > fit_actor.points.shape[0]:   # at most one field centre per fitted point
-        settings = replace(settings, field_centres=int(fit_actor.points.shape[0]))
     for k in ("solve_s", "outputs_s", "iterations", "lm_iterations", "windows_solved", "windows_cached"):
         tm.setdefault(k, 0)
     if cache_dir is not None:
