@@ -26,6 +26,7 @@ and dtype of ``points``, and add no copies beyond kornia's element-wise arithmet
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from kornia.geometry.calibration import distort_points, undistort_points as _kornia_undistort
 from kornia.geometry.camera.perspective import project_points as _kornia_project
@@ -77,9 +78,9 @@ def broadcast_camera(
                 "convert with camera_tensors(camera, dtype, device)"
             )
     shapes = [points.shape[:-2], K.shape[:-2]] + ([dist.shape[:-1]] if dist is not None else [])
-    try:
-        batch = torch.broadcast_shapes(*shapes)
-    except RuntimeError:
+    try:   # numpy's: torch.broadcast_shapes imports torch.fx and sympy on first use (0.8 s)
+        batch = np.broadcast_shapes(*shapes)
+    except ValueError:
         raise ValueError(
             "batch dimensions do not broadcast: points (*, N, {}) {}, K (*, 3, 3) {}{}".format(
                 point_dim, tuple(points.shape), tuple(K.shape),

@@ -93,11 +93,12 @@ def fit_sequence(actor: ActorAtPoints, obs: Observations, settings: FitSettings,
     n_lm = 0
     if settings.lm_iterations > 0:
         n_lm += solve_base(fit, actor, obs, settings.lm_iterations).iterations
-    opt = torch.optim.Adam(fit.parameters(), lr=settings.lr)
-    f = settings.lr_final_fraction
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda it: 1.0 if f >= 1 else f + (1 - f) * 0.5 * (1 + math.cos(math.pi * min(it / max(n_it, 1), 1))))
     history = []
+    if n_it > 0:   # torch.optim imports torch._dynamo on first use (~1-3 s): only when Adam runs
+        opt = torch.optim.Adam(fit.parameters(), lr=settings.lr)
+        f = settings.lr_final_fraction
+        sched = torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda it: 1.0 if f >= 1 else f + (1 - f) * 0.5 * (1 + math.cos(math.pi * min(it / max(n_it, 1), 1))))
     every = max(1, settings.early_stop_every)
     for it in range(n_it):
         terms = fitting_losses(fit, actor, obs)

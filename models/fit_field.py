@@ -25,7 +25,10 @@ Energy in ``a`` (the poses, ``F_W`` and ``coeff0`` fixed; all terms of
 * ``field_temporal_weight * mean_j sum_{b,e} (a_j - a_{j-1})^2``: no flicker,
 * ``field_motion_weight * mean_{j,p} |d_jp / unit|^2`` with ``d`` the displacement the field adds: of the
   fields that explain the landmarks the one that moves the face least, so that motion along the
-  camera axis (which the landmarks do not see) is not invented.
+  camera axis (which the landmarks do not see) is not invented,
+* ``field_normal_weight * mean_{j,p} (n_p . d_jp / unit)^2`` with ``n_p`` the actor's bone normal: skin
+  slides over the skull and teeth, so where the landmarks leave depth open the field moves points
+  along the bone rather than towards or away from the camera.
 
 The normal equations are block tridiagonal over frames (blocks of ``B E`` unknowns, coupled only by
 the temporal terms) and are solved by block Cholesky (:func:`solve_block_tridiagonal`), with
@@ -46,6 +49,7 @@ import math
 import torch
 
 from calib.projection import project_points
+from models.banded import solve_block_tridiagonal
 from models.fit_energy import irls_sqrt_weights, monocular_priors, observation_weights, robust_2d
 from models.fit_lm import projection_jacobian
 from models.fit_state import ActorAtPoints, Observations, SequenceFit, rbf_basis
@@ -56,7 +60,7 @@ from models.lbs import lbs_jaw
 NEAREST_CENTRES = 4
 NEAREST_CENTRES_CONSTANT = 12
 
-__all__ = ["farthest_points", "field_centres", "field_energy", "rbf_basis", "solve_block_tridiagonal", "solve_field"]
+__all__ = ["farthest_points", "field_centres", "field_energy", "rbf_basis", "solve_field"]
 
 
 def farthest_points(points: torch.Tensor, n: int) -> torch.Tensor:
@@ -82,43 +86,6 @@ def field_centres(actor: ActorAtPoints, n: int, min_motion_mm: float = 1.0) -> t
     return farthest_points(moving if moving.shape[0] >= n else actor.points.detach(), n)
 
 
-def solve_block_tridiagonal(D: torch.Tensor, U: torch.Tensor | None, g: torch.Tensor) -> torch.Tensor | None:
-    """Solve the symmetric positive definite block tridiagonal system ``A x = g``.
-
-    Args: D ``(J, m, m)`` the diagonal blocks ``A[j, j]``, or ``(1, m, m)`` when all are the same;
-        U ``(J-1, m, m)`` the blocks ``A[j, j+1]`` (``A[j+1, j] = U[j]^T``), or None when they are all
-        zero (independent blocks); g ``(J, m)``.
-    Returns ``x (J, m)``, or None when a pivot block is not positive definite.
-    Block Cholesky (Thomas) elimination: ``S_0 = D_0``, ``S_j = D_j - U_{j-1}^T S_{j-1}^-1 U_{j-1}``.
-    """
-    J = g.shape[0]
-    if J == 1 or U is None:   # no coupling between frames: independent blocks
-        L, info = torch.linalg.cholesky_ex(D)
-        if bool(info.any()):
-            return None
-        if D.shape[0] == 1:   # one matrix for every frame: factored once, J right-hand sides
-            return torch.cholesky_solve(g.T, L[0]).T
-        return torch.cholesky_solve(g[..., None], L)[..., 0]
-    Ls, Ws, ys = [], [], []
-    S, y = D[0], g[0]
-    for j in range(J):
-        L, info = torch.linalg.cholesky_ex(S)
-        if int(info) != 0:
-            return None
-        Ls.append(L)
-        ys.append(y)
-        if j + 1 < J:
-            W = torch.cholesky_solve(U[j], L)                    # S_j^-1 U_j
-            Ws.append(W)
-            S = D[j + 1] - U[j].T @ W
-            y = g[j + 1] - W.T @ y
-    x = [None] * J
-    x[J - 1] = torch.cholesky_solve(ys[J - 1][:, None], Ls[J - 1])[:, 0]
-    for j in range(J - 2, -1, -1):
-        x[j] = torch.cholesky_solve(ys[j][:, None], Ls[j])[:, 0] - Ws[j] @ x[j + 1]
-    return torch.stack(x)
-
-
 class _FieldProblem:
     """The field energy of one window (poses and everything but the field fixed), in float64."""
 
@@ -135,6 +102,9 @@ class _FieldProblem:
             fit.field.copy_(saved)
             self.a0 = saved.to(f64)                                                            # (J, B, E)
         self.E_basis = actor.expressions.detach().to(f64)                                      # (P, E, 3)
+        # E_p n_p (P, E): the field's displacement along the bone normal is (E_p n_p) . w_p
+        self.En = (None if actor.normal is None or s.field_normal_weight <= 0 else
+                   torch.einsum("pec,pc->pe", self.E_basis, actor.normal.detach().to(f64)))
         self.R = pose.head_R.detach().to(f64)
         skinned = lbs_jaw(actor.neutral.detach().to(f64).expand(self.R.shape[0], -1, -1),
                           actor.skin_weight.detach().to(f64).expand(self.R.shape[0], -1), pose.jaw_R.detach().to(f64),
@@ -200,6 +170,11 @@ class _FieldProblem:
             k = s.field_motion_weight / (J * P * s.length_unit_mm ** 2)
             Q = Q + k * EE
             gp = gp + k * torch.einsum("pec,jpc->jpe", self.E_basis, self.displacement(a))
+        if self.En is not None:  # residual sqrt(k) (E_p n_p)^T phi_p a_j / unit per point
+            k = s.field_normal_weight / (J * P * s.length_unit_mm ** 2)
+            if hessian:
+                Q = Q + k * torch.einsum("pe,pf->pef", self.En, self.En)[None]
+            gp = gp + k * self.En * torch.einsum("pe,jpe->jp", self.En, torch.einsum("pb,jbe->jpe", self.phi, a))[..., None]
         g = torch.einsum("pb,jpe->jbe", self.phi, gp).reshape(J, m)
         w = self.m + torch.einsum("pb,jbe->jpe", self.phi, a)                             # (J, P, E)
         if s.coeff_weight > 0:
@@ -273,6 +248,9 @@ def field_energy(prob: _FieldProblem, a: torch.Tensor) -> torch.Tensor:
     e = e + s.field_weight * a.square().mean()
     if s.field_motion_weight > 0:
         e = e + s.field_motion_weight * (prob.displacement(a) / s.length_unit_mm).square().sum(-1).mean()
+    if prob.En is not None:
+        along = torch.einsum("pe,jpe->jp", prob.En, torch.einsum("pb,jbe->jpe", prob.phi, a))
+        e = e + s.field_normal_weight * (along / s.length_unit_mm).square().mean()
     if J > 1:
         e = e + s.coeff_temporal_weight * (w[1:] - w[:-1]).square().sum(-1).mean()
         e = e + s.field_temporal_weight * (a[1:] - a[:-1]).square().sum((-1, -2)).mean()

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from calib.projection import project_points
+from models.banded import solve_block_banded
 from models.fit_energy import (
     irls_sqrt_weights,
     jaw_prior_target,
@@ -280,12 +281,12 @@ def projection_jacobian(x: torch.Tensor, K: torch.Tensor, dist: torch.Tensor | N
     return uv, torch.stack([fx * dxd + sk * dyd, fy * dyd], -2)
 
 
-def _solve_spd(H: torch.Tensor, damping: torch.Tensor, g: torch.Tensor) -> torch.Tensor | None:
-    """``(H + diag(damping))^-1 g`` by Cholesky; None when the matrix is not positive definite."""
-    L, info = torch.linalg.cholesky_ex(H + torch.diag(damping))
-    if int(info) != 0:
-        return None
-    return torch.cholesky_solve(g[:, None], L)[:, 0]
+def _solve_spd(H: torch.Tensor, damping: torch.Tensor, g: torch.Tensor, n: int) -> torch.Tensor | None:
+    """``(H + diag(damping))^-1 g`` by (block banded) Cholesky, ``n`` unknowns per frame; None when the
+    matrix is not positive definite."""
+    A = H.clone()
+    A.diagonal().add_(damping)
+    return solve_block_banded(A, g, n)
 
 
 @torch.no_grad()
@@ -318,7 +319,7 @@ def solve_base(fit: SequenceFit, actor: ActorAtPoints, obs: Observations, iterat
         improved = False
         while it < iterations:
             it += 1
-            step = _solve_spd(H, mu * diag, g)
+            step = _solve_spd(H, mu * diag, g, n)
             if step is None:  # not positive definite: damp more
                 mu *= 4
                 continue

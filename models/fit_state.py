@@ -45,14 +45,16 @@ class ActorAtPoints:
     scale: float
     jaw_rotvec: torch.Tensor | None = None   # (E, 3) learned jaw rotation (axis-angle, rad) of each expression
     jaw_shift: torch.Tensor | None = None    # (E, 3) mm, its jaw translation (None: unknown, rest)
+    normal: torch.Tensor | None = None       # (P, 3) unit bone normal n = N(c) (None: unknown)
 
     @classmethod
     @torch.no_grad()
     def query(cls, model, points: torch.Tensor, jaw_rot6d: torch.Tensor | None = None,
-              jaw_t: torch.Tensor | None = None) -> ActorAtPoints:
+              jaw_t: torch.Tensor | None = None, evaluated=None) -> ActorAtPoints:
         """Evaluate ``model`` (an :class:`~models.aim.AnatomicalFaceModel`) at ``points (P, 3)``; with the
-        actor's learned per-expression jaw transforms ``jaw_rot6d (E, 6)``, ``jaw_t (E, 3)`` mm."""
-        a = model(points)
+        actor's learned per-expression jaw transforms ``jaw_rot6d (E, 6)``, ``jaw_t (E, 3)`` mm.
+        ``evaluated``: ``model(points)`` when the caller already has it (not evaluated again)."""
+        a = model(points) if evaluated is None else evaluated
         rotvec = shift = None
         if jaw_rot6d is not None and jaw_t is not None:
             from scipy.spatial.transform import Rotation
@@ -62,7 +64,7 @@ class ActorAtPoints:
             shift = jaw_t.detach().to(points)
         return cls(points=points, neutral=a.neutral, skin_weight=a.skin_weight, expressions=a.expressions,
                    jaw_pivot=model.jaw_pivot, center=model.center, scale=float(model.config.scale),
-                   jaw_rotvec=rotvec, jaw_shift=shift)
+                   jaw_rotvec=rotvec, jaw_shift=shift, normal=a.normal)
 
     def jaw_of(self, coeffs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The jaw the expressions ``coeffs (J, E)`` imply: ``exp(sum_i w_i r_i)``, ``sum_i w_i t_i`` with the

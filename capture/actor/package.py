@@ -149,6 +149,19 @@ class Actor:
     def shape_names(self) -> list[str]:
         return list(self.metadata["shape_names"])
 
+    def at_template(self):
+        """The frozen model's outputs (:class:`models.aim.Anatomy`, float32, on the model's device) at every
+        template vertex, evaluated once per loaded actor: the fit's output points, the rig export and the
+        report all need them, and each evaluation costs a forward pass of the five networks."""
+        cached = self.__dict__.get("_at_template")
+        if cached is None:
+            device = next(iter(self.model.parameters())).device
+            pts = torch.as_tensor(np.asarray(self.template.vertices), dtype=torch.float32, device=device)
+            with torch.no_grad():
+                cached = self.model(pts)
+            self.__dict__["_at_template"] = cached
+        return cached
+
 
 def _bad(name: str, what: str, fix: str = "retrain the actor or restore its package from a backup") -> CaptureError:
     return CaptureError(f"actor '{name}': {what}; {fix}")

@@ -75,14 +75,9 @@ class FaceRig:
 
     @classmethod
     def from_actor(cls, actor) -> "FaceRig":
-        """Query ``actor`` (:class:`capture.actor.package.Actor`) once at every template vertex."""
-        import torch
-
+        """``actor`` (:class:`capture.actor.package.Actor`) at every template vertex (its cached query)."""
         model = actor.model
-        device = next(iter(model.parameters())).device
-        pts = torch.as_tensor(np.asarray(actor.template.vertices), dtype=torch.float32, device=device)
-        with torch.no_grad():
-            a = model(pts)
+        a = actor.at_template()
         neutral_name = actor.metadata.get("neutral", actor.shape_names[0])
         names = tuple(n for n in actor.shape_names if n != neutral_name)
         expr = a.expressions.detach().cpu().double().numpy().transpose(1, 0, 2)      # (E, V, 3)

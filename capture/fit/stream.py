@@ -34,7 +34,8 @@ from calib.camera import Camera
 from calib.projection import camera_tensors
 from capture.fit.init import PnPSettings, interpolate_poses, pnp_frame, smooth_poses
 from capture.fit.take import (CACHE_VERSION, FrameFit, WindowedFit, _check_window, _fingerprint, _query, _run_windows,
-                              _Window, reprojection_metrics, resolve_settings, resolved_settings_dict)
+                              _Window, query_template, reprojection_metrics, resolve_settings,
+                              resolved_settings_dict)
 from models.fit import Observations
 
 __all__ = ["fit_take_stream", "StreamLandmarkSource"]
@@ -200,7 +201,7 @@ def fit_take_stream(actor, frames: Iterable, template_points: np.ndarray, camera
     tm = timings if timings is not None else {}
     t_start = time.perf_counter()
     fit_actor = _query(actor, tp, device)
-    out_actor = _query(actor, np.asarray(actor.template.vertices), device)
+    out_actor = query_template(actor, device)
     tm["query_s"] = time.perf_counter() - t_start
     K, dist = camera_tensors(camera, torch.float32, device)
     src = StreamLandmarkSource(frames, fit_actor.neutral.cpu().double().numpy(), camera.K, camera.dist, pnp, K, dist,

@@ -477,6 +477,17 @@ def _query(actor, points: np.ndarray, device) -> ActorAtPoints:
                                getattr(actor, "jaw_rot6d", None), getattr(actor, "jaw_t", None))
 
 
+def query_template(actor, device) -> ActorAtPoints:
+    """The actor at every template vertex: its cached evaluation (``Actor.at_template``) when it has one
+    on ``device``."""
+    tv = np.asarray(actor.template.vertices)
+    cached = getattr(actor, "at_template", None)
+    if cached is None or next(iter(actor.model.parameters())).device != torch.device(device):
+        return _query(actor, tv, device)
+    return ActorAtPoints.query(actor.model, torch.as_tensor(tv, dtype=torch.float32, device=device),
+                               getattr(actor, "jaw_rot6d", None), getattr(actor, "jaw_t", None), evaluated=cached())
+
+
 # ----------------------------------------------------------------------------------------------
 # public entry points
 
@@ -523,7 +534,7 @@ def fit_take(actor, landmarks: TakeLandmarks, camera: Camera, how: WindowedFit =
     tm = timings if timings is not None else {}
     t_start = time.perf_counter()
     fit_actor = _query(actor, tp, device)
-    out_actor = _query(actor, np.asarray(actor.template.vertices), device)
+    out_actor = query_template(actor, device)
     tm["query_s"] = time.perf_counter() - t_start
     t_start = time.perf_counter()
     R0, t0, _ = initial_head_poses(fit_actor.neutral.cpu().double().numpy(), points2d, w, camera.K,
@@ -558,7 +569,7 @@ def fit_meshes(actor, meshes: np.ndarray | Iterable[np.ndarray], how: WindowedFi
         n_samples = len(tv) if s.field_centres > 0 and s.field_iterations > 0 else 1000
     idx = farthest_point_sample(tv, n_samples)
     fit_actor = _query(actor, tv[idx], device)
-    out_actor = _query(actor, tv, device)
+    out_actor = query_template(actor, device)
     total = len(meshes) if hasattr(meshes, "__len__") else None
     src = _MeshSource(meshes, idx, fit_actor.neutral.cpu().double().numpy(), torch.float32, device)
     base = _fingerprint(CACHE_VERSION, "3d", resolved_settings_dict(s, window, overlap, kind="3d"), n_samples,
