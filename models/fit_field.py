@@ -25,10 +25,7 @@ Energy in ``a`` (the poses, ``F_W`` and ``coeff0`` fixed; all terms of
 * ``field_temporal_weight * mean_j sum_{b,e} (a_j - a_{j-1})^2``: no flicker,
 * ``field_motion_weight * mean_{j,p} |d_jp / unit|^2`` with ``d`` the displacement the field adds: of the
   fields that explain the landmarks the one that moves the face least, so that motion along the
-  camera axis (which the landmarks do not see) is not invented,
-* ``field_normal_weight * mean_{j,p} (n_p . d_jp / unit)^2`` with ``n_p`` the actor's bone normal: skin
-  slides over the skull and teeth, so where the landmarks leave depth open the field moves points
-  along the bone rather than towards or away from the camera.
+  camera axis (which the landmarks do not see) is not invented.
 
 The normal equations are block tridiagonal over frames (blocks of ``B E`` unknowns, coupled only by
 the temporal terms) and are solved by block Cholesky (:func:`solve_block_tridiagonal`), with
@@ -102,9 +99,6 @@ class _FieldProblem:
             fit.field.copy_(saved)
             self.a0 = saved.to(f64)                                                            # (J, B, E)
         self.E_basis = actor.expressions.detach().to(f64)                                      # (P, E, 3)
-        # E_p n_p (P, E): the field's displacement along the bone normal is (E_p n_p) . w_p
-        self.En = (None if actor.normal is None or s.field_normal_weight <= 0 else
-                   torch.einsum("pec,pc->pe", self.E_basis, actor.normal.detach().to(f64)))
         self.R = pose.head_R.detach().to(f64)
         skinned = lbs_jaw(actor.neutral.detach().to(f64).expand(self.R.shape[0], -1, -1),
                           actor.skin_weight.detach().to(f64).expand(self.R.shape[0], -1), pose.jaw_R.detach().to(f64),
@@ -170,11 +164,6 @@ class _FieldProblem:
             k = s.field_motion_weight / (J * P * s.length_unit_mm ** 2)
             Q = Q + k * EE
             gp = gp + k * torch.einsum("pec,jpc->jpe", self.E_basis, self.displacement(a))
-        if self.En is not None:  # residual sqrt(k) (E_p n_p)^T phi_p a_j / unit per point
-            k = s.field_normal_weight / (J * P * s.length_unit_mm ** 2)
-            if hessian:
-                Q = Q + k * torch.einsum("pe,pf->pef", self.En, self.En)[None]
-            gp = gp + k * self.En * torch.einsum("pe,jpe->jp", self.En, torch.einsum("pb,jbe->jpe", self.phi, a))[..., None]
         g = torch.einsum("pb,jpe->jbe", self.phi, gp).reshape(J, m)
         w = self.m + torch.einsum("pb,jbe->jpe", self.phi, a)                             # (J, P, E)
         if s.coeff_weight > 0:
@@ -248,9 +237,6 @@ def field_energy(prob: _FieldProblem, a: torch.Tensor) -> torch.Tensor:
     e = e + s.field_weight * a.square().mean()
     if s.field_motion_weight > 0:
         e = e + s.field_motion_weight * (prob.displacement(a) / s.length_unit_mm).square().sum(-1).mean()
-    if prob.En is not None:
-        along = torch.einsum("pe,jpe->jp", prob.En, torch.einsum("pb,jbe->jpe", prob.phi, a))
-        e = e + s.field_normal_weight * (along / s.length_unit_mm).square().mean()
     if J > 1:
         e = e + s.coeff_temporal_weight * (w[1:] - w[:-1]).square().sum(-1).mean()
         e = e + s.field_temporal_weight * (a[1:] - a[:-1]).square().sum((-1, -2)).mean()

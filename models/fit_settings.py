@@ -78,12 +78,6 @@ class FitSettings:
     """Weight of the mean squared displacement the field adds (over frames and fit points, in
     ``length_unit_mm``): of the fields that explain the landmarks, the one that moves the face least,
     so a motion the camera cannot see (along its axis) is not invented."""
-    field_normal_weight: float = 0.0
-    """Weight of the mean squared component of the field's displacement along the bone normal ``n(c)``
-    (in ``length_unit_mm``): skin slides over the skull and teeth rather than away from them (in ICT's
-    expressions 5-20 % of a moving point's squared motion is along the normal, against 15-40 % along
-    the face's forward axis), so where landmarks leave depth open the field moves points along the
-    bone, not towards or away from the camera."""
     field_iterations: int = 0
     """Gauss-Newton iterations of the field after each Levenberg-Marquardt solve of the base."""
 

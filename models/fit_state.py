@@ -45,7 +45,6 @@ class ActorAtPoints:
     scale: float
     jaw_rotvec: torch.Tensor | None = None   # (E, 3) learned jaw rotation (axis-angle, rad) of each expression
     jaw_shift: torch.Tensor | None = None    # (E, 3) mm, its jaw translation (None: unknown, rest)
-    normal: torch.Tensor | None = None       # (P, 3) unit bone normal n = N(c) (None: unknown)
 
     @classmethod
     @torch.no_grad()
@@ -64,7 +63,7 @@ class ActorAtPoints:
             shift = jaw_t.detach().to(points)
         return cls(points=points, neutral=a.neutral, skin_weight=a.skin_weight, expressions=a.expressions,
                    jaw_pivot=model.jaw_pivot, center=model.center, scale=float(model.config.scale),
-                   jaw_rotvec=rotvec, jaw_shift=shift, normal=a.normal)
+                   jaw_rotvec=rotvec, jaw_shift=shift)
 
     def jaw_of(self, coeffs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The jaw the expressions ``coeffs (J, E)`` imply: ``exp(sum_i w_i r_i)``, ``sum_i w_i t_i`` with the

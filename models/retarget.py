@@ -46,8 +46,7 @@ def retarget_points(source: AnatomicalFaceModel, source_points: torch.Tensor, ta
         raise ValueError(f"target plays {expressions.shape[1]} expressions, the source fit has "
                          f"{source.config.n_expressions}")
     return ActorAtPoints(points=source_points, neutral=a.neutral, skin_weight=a.skin_weight, expressions=expressions,
-                         jaw_pivot=target.jaw_pivot, center=source.center, scale=float(source.config.scale),
-                         normal=a.normal)
+                         jaw_pivot=target.jaw_pivot, center=source.center, scale=float(source.config.scale))
 
 
 def pose_part(actor: ActorAtPoints, head_R: torch.Tensor, head_t: torch.Tensor, jaw_R: torch.Tensor,

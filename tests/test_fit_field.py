@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from calib.projection import project_points
-from models.fit import FitSettings, Observations, SequenceFit, fitting_losses
 from models.banded import solve_block_tridiagonal
+from models.fit import FitSettings, Observations, SequenceFit, fitting_losses
 from models.fit_field import (
     _FieldProblem,
     farthest_points,
@@ -52,11 +52,10 @@ def test_rbf_basis_is_normalised_gaussians():
 
 def _problem(field_weight=0.3, temporal=0.7):
     actor = toy_actor(P=40, E=3, seed=1)
-    actor.normal = torch.nn.functional.normalize(torch.randn(40, 3, dtype=torch.float64), dim=1)
     head_R, head_t, face = truth(toy_actor(P=40, E=4, seed=1), J=4)
     s = FitSettings(code_dim=4, hidden=8, field_centres=5, field_sigma_mm=40.0, field_weight=field_weight,
-                    field_temporal_weight=temporal, field_motion_weight=0.4 * temporal,
-                    field_normal_weight=0.9 * temporal, coeff_weight=0.2, coeff_temporal_weight=0.5, robust_px=2.0)
+                    field_temporal_weight=temporal, field_motion_weight=0.4 * temporal, coeff_weight=0.2,
+                    coeff_temporal_weight=0.5, robust_px=2.0)
     fit = SequenceFit(4, 3, s, head_R, head_t).double()
     obs = Observations(points2d=project_points(face, K, DIST), weights=torch.rand(4, 40, dtype=torch.float64),
                        K=K, dist=DIST)
@@ -79,8 +78,7 @@ def test_field_energy_and_gradient_match_the_fitting_energy():
     d = torch.einsum("pb,jbe,pec->jpc", fit.field_basis(actor.points), fit.field, actor.expressions)  # field's motion
     ref = (terms["2d"] + terms["coeff"] + terms["coeff_temporal"] + s.field_weight * fit.field.square().mean()
            + s.field_temporal_weight * (fit.field[1:] - fit.field[:-1]).square().sum((-1, -2)).mean()
-           + s.field_motion_weight * (d / s.length_unit_mm).square().sum(-1).mean()
-           + s.field_normal_weight * ((d * actor.normal).sum(-1) / s.length_unit_mm).square().mean())
+           + s.field_motion_weight * (d / s.length_unit_mm).square().sum(-1).mean())
     torch.testing.assert_close(e.detach(), ref, rtol=1e-9, atol=1e-12)
     grad, = torch.autograd.grad(e, a)
     _, _, g = prob.normal_equations(a.detach())
