@@ -125,6 +125,15 @@ class _Problem:
                                                                          dc.square()).sum())) / ((J - 1) * P)
         return e
 
+    @property
+    def frame_bandwidth(self) -> int:
+        """How many frames apart the normal equations couple frames: 2 with the pose-acceleration term
+        (second differences), 1 with the coefficient smoothness (first differences), else 0."""
+        s, J = self.s, self.J
+        if s.pose_accel_weight > 0 and J > 2:
+            return 2
+        return 1 if s.coeff_temporal_weight > 0 and J > 1 else 0
+
     def normal_equations(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``H = J^T J`` ``(J n, J n)`` and ``g = J^T r`` ``(J n,)`` of the (IRLS-weighted) residuals at the base.
 
@@ -168,7 +177,7 @@ class _Problem:
         J, P, m, _ = D.shape
         # R_g E_p^T per point: one small GEMM per point (batched over points)
         DE = (DR.transpose(0, 1).reshape(P, J * m, 3) @ self.E_basis.transpose(1, 2)).reshape(P, J, m, -1)
-        return torch.cat([-_mm(D, _skew(y)), u * D, -k * _mm(DR, _skew(jaw_q)), (u * k) * DR,
+        return torch.cat([-(D @ _skew(y)), u * D, -k * (DR @ _skew(jaw_q)), (u * k) * DR,
                           DE.transpose(0, 1)], -1)
 
     def _add_temporal(self, H: torch.Tensor, g: torch.Tensor, pose: FramePose, c: torch.Tensor) -> None:
@@ -209,11 +218,6 @@ def _gram(Jr: torch.Tensor) -> torch.Tensor:
     the energy that accepts a step stay in float64)."""
     X = Jr.reshape(Jr.shape[0], -1, Jr.shape[-1]).float()
     return (X.transpose(1, 2) @ X).to(Jr.dtype)
-
-
-def _mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``a @ b`` for many tiny matrices (``(*, i, k) @ (*, k, j)``, broadcast), faster than batched GEMM."""
-    return (a[..., :, :, None] * b[..., None, :, :]).sum(-2)
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
@@ -281,12 +285,12 @@ def projection_jacobian(x: torch.Tensor, K: torch.Tensor, dist: torch.Tensor | N
     return uv, torch.stack([fx * dxd + sk * dyd, fy * dyd], -2)
 
 
-def _solve_spd(H: torch.Tensor, damping: torch.Tensor, g: torch.Tensor, n: int) -> torch.Tensor | None:
-    """``(H + diag(damping))^-1 g`` by (block banded) Cholesky, ``n`` unknowns per frame; None when the
-    matrix is not positive definite."""
+def _solve_spd(H: torch.Tensor, damping: torch.Tensor, g: torch.Tensor, n: int, b: int) -> torch.Tensor | None:
+    """``(H + diag(damping))^-1 g`` by block banded Cholesky (``n`` unknowns per frame, frames coupled at
+    most ``b`` apart); None when the matrix is not positive definite."""
     A = H.clone()
     A.diagonal().add_(damping)
-    return solve_block_banded(A, g, n)
+    return solve_block_banded(A, g, n, b)
 
 
 @torch.no_grad()
@@ -319,7 +323,7 @@ def solve_base(fit: SequenceFit, actor: ActorAtPoints, obs: Observations, iterat
         improved = False
         while it < iterations:
             it += 1
-            step = _solve_spd(H, mu * diag, g, n)
+            step = _solve_spd(H, mu * diag, g, n, prob.frame_bandwidth)
             if step is None:  # not positive definite: damp more
                 mu *= 4
                 continue

@@ -173,8 +173,12 @@ def test_lm_energy_and_gradient_match_the_fitting_energy():
     fit.head_R0, fit.head_t0 = so3_exp(d[:, 0:3]) @ base[0], base[1] + u * d[:, 3:6]
     fit.jaw_R0, fit.jaw_t0, fit.coeff0 = so3_exp(d[:, 6:9]) @ base[2], base[3] + u * d[:, 9:12], base[4] + d[:, 12:]
     grad, = torch.autograd.grad(fitting_losses(fit, actor, obs)["total"], d)
-    _, g = prob.normal_equations()
+    H, g = prob.normal_equations()
     torch.testing.assert_close(g.reshape(grad.shape), grad / 2, rtol=1e-8, atol=1e-12)
+    # the band the solver assumes is the band the terms make (every temporal term is on here)
+    from models.banded import block_bandwidth
+
+    assert prob.frame_bandwidth == block_bandwidth(H, prob.n) == 2
 
 
 def test_lm_reaches_the_least_squares_minimum_of_scipy():
