@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["block_bandwidth", "solve_block_banded", "solve_block_tridiagonal"]
+__all__ = ["block_bandwidth", "solve_banded_blocks", "solve_block_banded", "solve_block_tridiagonal"]
 
 
 def solve_block_tridiagonal(D: torch.Tensor, U: torch.Tensor | None, g: torch.Tensor) -> torch.Tensor | None:
@@ -56,32 +56,56 @@ def block_bandwidth(H: torch.Tensor, n: int) -> int:
     return int((nz[:, 0] - nz[:, 1]).abs().max()) if len(nz) else 0
 
 
-def solve_block_banded(A: torch.Tensor, g: torch.Tensor, n: int, b: int | None = None) -> torch.Tensor | None:
-    """Solve ``A x = g`` for a symmetric positive definite ``A (J n, J n)`` whose ``(n, n)`` blocks vanish
-    more than ``b`` blocks off the diagonal (default: :func:`block_bandwidth`); ``g (J n,)``.
+def solve_banded_blocks(H: torch.Tensor, g: torch.Tensor, b: int, damping: torch.Tensor | None = None
+                        ) -> torch.Tensor | None:
+    """Solve ``(A + diag(damping)) x = g`` for a symmetric positive definite ``A`` given as its blocks
+    ``H (J, J, n, n)`` (``H[j, k]`` the ``(n, n)`` block of frames ``j, k``, zero for ``|j - k| > b``);
+    ``g``, ``damping`` ``(J n,)``.
 
-    Groups of ``max(b, 1)`` consecutive blocks make the system block tridiagonal
+    Groups of ``max(b, 1)`` consecutive frames make the system block tridiagonal
     (:func:`solve_block_tridiagonal`): ``J / b`` Cholesky factorisations of ``(b n, b n)`` instead of one of
-    ``(J n, J n)`` (a 30-frame window of the 2D fit, ``n = 31``, ``b = 2``: about 15x fewer operations).
-    Returns ``x (J n,)``, or None when ``A`` is not positive definite.
+    ``(J n, J n)`` (a 30-frame window of the 2D fit, ``n = 31``, ``b = 2``: about 15x fewer operations),
+    and only the blocks inside the band are read. Returns ``x (J n,)``, or None when the matrix is not
+    positive definite.
     """
+    J, n = H.shape[0], H.shape[2]
+    if H.shape != (J, J, n, n) or g.shape != (J * n,) or (damping is not None and damping.shape != (J * n,)):
+        raise ValueError(f"H must be (J, J, n, n) and g, damping (J n,); got {tuple(H.shape)}, {tuple(g.shape)}")
+    s = max(b, 1)
+    G = -(-J // s)                        # groups of s frames; the last one padded with identity
+    if G <= 1 or 3 * s >= J:              # no gain over one dense factorisation
+        A = H.permute(0, 2, 1, 3).reshape(J * n, J * n)
+        if damping is not None:
+            A = A + torch.diag(damping)
+        L, info = torch.linalg.cholesky_ex(A)
+        return None if int(info) != 0 else torch.cholesky_solve(g[:, None], L)[:, 0]
+    m = s * n
+    D = H.new_zeros(G, m, m)
+    U = H.new_zeros(G - 1, m, m) if b > 0 else None
+    for k in range(G):
+        a0, a1 = k * s, min(J, (k + 1) * s)
+        w = (a1 - a0) * n
+        D[k, :w, :w] = H[a0:a1, a0:a1].permute(0, 2, 1, 3).reshape(w, w)
+        D[k, w:, w:] = torch.eye(m - w, dtype=H.dtype, device=H.device)
+        if U is not None and k + 1 < G:
+            b1 = min(J, a1 + s)
+            U[k, :w, :(b1 - a1) * n] = H[a0:a1, a1:b1].permute(0, 2, 1, 3).reshape(w, (b1 - a1) * n)
+    rhs = g.new_zeros(G * m)
+    rhs[:J * n] = g
+    if damping is not None:
+        dd = damping.new_zeros(G * m)
+        dd[:J * n] = damping
+        D.diagonal(dim1=1, dim2=2).add_(dd.view(G, m))
+    x = solve_block_tridiagonal(D, U, rhs.view(G, m))
+    return None if x is None else x.reshape(-1)[:J * n]
+
+
+def solve_block_banded(A: torch.Tensor, g: torch.Tensor, n: int, b: int | None = None) -> torch.Tensor | None:
+    """:func:`solve_banded_blocks` for a dense ``A (J n, J n)`` with ``n`` unknowns per frame and band ``b``
+    frames (default: :func:`block_bandwidth`); ``g (J n,)``."""
     N = A.shape[0]
     J = N // n
     if A.shape != (N, N) or J * n != N or g.shape != (N,):
         raise ValueError(f"A must be (J n, J n) and g (J n,) with n = {n}; got {tuple(A.shape)}, {tuple(g.shape)}")
     b = block_bandwidth(A, n) if b is None else b
-    s = max(b, 1)
-    G = -(-J // s)                        # groups of s frames; the last one padded with identity blocks
-    if G <= 1 or 3 * s >= J:              # no gain over one dense factorisation
-        L, info = torch.linalg.cholesky_ex(A)
-        return None if int(info) != 0 else torch.cholesky_solve(g[:, None], L)[:, 0]
-    m, pad = s * n, G * s * n - N
-    if pad:
-        A = torch.block_diag(A, torch.eye(pad, dtype=A.dtype, device=A.device))
-        g = torch.cat([g, g.new_zeros(pad)])
-    blocks = A.reshape(G, m, G, m)
-    idx = torch.arange(G, device=A.device)
-    D = blocks[idx, :, idx]                                   # (G, m, m)
-    U = blocks[idx[:-1], :, idx[1:]]                          # (G-1, m, m): A[group k, group k+1]
-    x = solve_block_tridiagonal(D, U if b > 0 else None, g.reshape(G, m))
-    return None if x is None else x.reshape(-1)[:N]
+    return solve_banded_blocks(A.reshape(J, n, J, n).permute(0, 2, 1, 3), g, b)

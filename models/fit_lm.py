@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from calib.projection import project_points
-from models.banded import solve_block_banded
+from models.banded import solve_banded_blocks
 from models.fit_energy import (
     irls_sqrt_weights,
     jaw_prior_target,
@@ -78,6 +78,7 @@ class _Problem:
         self.base = [cast(fit.head_R0), cast(fit.head_t0), cast(fit.jaw_R0), cast(fit.jaw_t0), cast(fit.coeff0)]
         self.J, self.E = self.base[4].shape
         self.n = 12 + self.E
+        self._H = None
         # the jaw prior's target, held at the solve's start (re-evaluated at every solve)
         self.jaw_tR, self.jaw_tt = (x.to(f64) for x in jaw_prior_target(actor, self.s, self.Fw_mean + self.base[4]))
 
@@ -135,7 +136,8 @@ class _Problem:
         return 1 if s.coeff_temporal_weight > 0 and J > 1 else 0
 
     def normal_equations(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``H = J^T J`` ``(J n, J n)`` and ``g = J^T r`` ``(J n,)`` of the (IRLS-weighted) residuals at the base.
+        """``H = J^T J`` as its frame blocks ``(J, J, n, n)`` (``H[j, k]`` couples frames ``j`` and ``k``; zero
+        beyond :attr:`frame_bandwidth`) and ``g = J^T r`` ``(J n,)`` of the (IRLS-weighted) residuals at the base.
 
         The residuals are those whose squares sum to the energy up to a constant: per landmark
         ``sqrt(w rho'(r^2) / sum w) (uv - p)``, per 3D point ``(x - p) / (unit sqrt(J P))``, per frame
@@ -161,11 +163,13 @@ class _Problem:
         kw = s.coeff_weight / (J * E)
         Hb[:, 12:, 12:] += kw * torch.eye(E, dtype=x.dtype)
         gb[:, 12:] += kw * (self.Fw_mean + c)
-        H = x.new_zeros(J, J, n, n)                     # H[j, k] is the (n, n) block of frames j, k
+        if self._H is None:     # H[j, k] is the (n, n) block of frames j, k; reused: no fresh pages per step
+            self._H = x.new_zeros(J, J, n, n)
+        H = self._H.zero_()
         j = torch.arange(J)
         H[j, j] = Hb
         self._add_temporal(H, gb, pose, c)
-        return H.permute(0, 2, 1, 3).reshape(J * n, J * n), gb.reshape(-1)
+        return H, gb.reshape(-1)
 
     def _jacobian(self, D: torch.Tensor, y: torch.Tensor, jaw_q: torch.Tensor, head_R: torch.Tensor) -> torch.Tensor:
         """``D @ d x / d delta`` ``(J, P, m, n)`` for ``D (J, P, m, 3)`` (the residuals' derivative wrt ``x``).
@@ -285,14 +289,6 @@ def projection_jacobian(x: torch.Tensor, K: torch.Tensor, dist: torch.Tensor | N
     return uv, torch.stack([fx * dxd + sk * dyd, fy * dyd], -2)
 
 
-def _solve_spd(H: torch.Tensor, damping: torch.Tensor, g: torch.Tensor, n: int, b: int) -> torch.Tensor | None:
-    """``(H + diag(damping))^-1 g`` by block banded Cholesky (``n`` unknowns per frame, frames coupled at
-    most ``b`` apart); None when the matrix is not positive definite."""
-    A = H.clone()
-    A.diagonal().add_(damping)
-    return solve_block_banded(A, g, n, b)
-
-
 @torch.no_grad()
 def _write_back(fit: SequenceFit, base: list[torch.Tensor]) -> None:
     for name, x in zip(("head_R0", "head_t0", "jaw_R0", "jaw_t0", "coeff0"), base):
@@ -317,13 +313,15 @@ def solve_base(fit: SequenceFit, actor: ActorAtPoints, obs: Observations, iterat
     energies = [energy]
     mu = 1e-3
     it = 0
+    frames = torch.arange(J)
     while it < iterations:
         H, g = prob.normal_equations()
-        diag = H.diagonal().clamp_min(1e-12 * float(H.diagonal().max()) + 1e-30)
+        diag = torch.diagonal(H[frames, frames], dim1=-2, dim2=-1).reshape(-1)       # of the (J n, J n) matrix
+        diag = diag.clamp_min(1e-12 * float(diag.max()) + 1e-30)
         improved = False
         while it < iterations:
             it += 1
-            step = _solve_spd(H, mu * diag, g, n, prob.frame_bandwidth)
+            step = solve_banded_blocks(H, g, prob.frame_bandwidth, mu * diag)
             if step is None:  # not positive definite: damp more
                 mu *= 4
                 continue

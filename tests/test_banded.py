@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from models.banded import block_bandwidth, solve_block_banded
+from models.banded import block_bandwidth, solve_banded_blocks, solve_block_banded
 
 
 def _banded_spd(J: int, n: int, b: int, seed: int = 0) -> torch.Tensor:
@@ -37,3 +37,16 @@ def test_block_banded_solve_reports_an_indefinite_matrix():
 def test_block_banded_solve_checks_shapes():
     with pytest.raises(ValueError, match=r"\(J n, J n\)"):
         solve_block_banded(torch.eye(10, dtype=torch.float64), torch.ones(10, dtype=torch.float64), 3)
+
+
+@pytest.mark.parametrize("J,b", [(30, 2), (7, 2), (11, 1)])
+def test_banded_blocks_with_damping_match_dense(J, b):
+    """The fit's form: the matrix as frame blocks (J, J, n, n) plus Marquardt's diagonal damping."""
+    n = 5
+    A = _banded_spd(J, n, b, seed=2)
+    A.diagonal().sub_(3.0 * n * (b + 1))          # less dominant: the damping matters
+    damping = torch.rand(J * n, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 50
+    rhs = torch.randn(J * n, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    blocks = A.reshape(J, n, J, n).permute(0, 2, 1, 3)
+    x = solve_banded_blocks(blocks, rhs, b, damping)
+    torch.testing.assert_close(x, torch.linalg.solve(A + torch.diag(damping), rhs), rtol=1e-9, atol=1e-11)
