@@ -187,22 +187,21 @@ class _Problem:
     def _add_temporal(self, H: torch.Tensor, g: torch.Tensor, pose: FramePose, c: torch.Tensor) -> None:
         """Add the temporal terms' ``J^T J`` to ``H (J, J, n, n)`` and ``J^T r`` to ``g (J, n)``, at the base."""
         s, J, u, E, n = self.s, self.J, self.unit, self.E, self.n
-        eye3 = torch.eye(3, dtype=c.dtype)
+        eye3 = torch.eye(3, dtype=c.dtype).expand(J, 3, 3)
+        gens = _skew(torch.eye(3, dtype=c.dtype))                                    # (3, 3, 3): [e_a]x
+        # per frame, each quantity's derivative wrt its own update: vec(R) wrt R's rotation vector
+        dR = lambda R: torch.einsum("aik,jkl->jila", gens, R).reshape(J, 9, 3)
         if s.pose_accel_weight > 0 and J > 2:
+            # head R, head t, jaw R, jaw t stacked (J, 24); their updates are delta[:, 0:12] in that order
             k = math.sqrt(s.pose_accel_weight / (J - 2))
-            gens = _skew(eye3)                                                       # (3, 3, 3): [e_a]x
-            # per frame: each quantity's derivative wrt its own update (rows: the quantity, cols: delta)
-            for val, cols, G in (
-                    (pose.head_t / u, slice(3, 6), eye3.expand(J, 3, 3)),
-                    (pose.head_R, slice(0, 3), torch.einsum("aik,jkl->jila", gens, pose.head_R).reshape(J, 9, 3)),
-                    (pose.jaw_t / u, slice(9, 12), eye3.expand(J, 3, 3)),
-                    (pose.jaw_R, slice(6, 9), torch.einsum("aik,jkl->jila", gens, pose.jaw_R).reshape(J, 9, 3))):
-                _add_stencil(H, g, val.reshape(J, -1), G, cols, (1.0, -2.0, 1.0), k)
+            val = torch.cat([pose.head_R.reshape(J, 9), pose.head_t / u, pose.jaw_R.reshape(J, 9), pose.jaw_t / u], 1)
+            G = _blocks([dR(pose.head_R), eye3, dR(pose.jaw_R), eye3])                 # (J, 24, 12)
+            _add_stencil(H, g, val, G, slice(0, 12), (1.0, -2.0, 1.0), k)
         if s.jaw_prior_weight > 0:
+            # jaw R and jaw t against their targets (J, 12); updates delta[:, 6:12]
             k = math.sqrt(s.jaw_prior_weight / J)
-            _add_stencil(H, g, (pose.jaw_t - self.jaw_tt) / u, eye3.expand(J, 3, 3), slice(9, 12), (1.0,), k)
-            _add_stencil(H, g, (pose.jaw_R - self.jaw_tR).reshape(J, 9),
-                         torch.einsum("aik,jkl->jila", _skew(eye3), pose.jaw_R).reshape(J, 9, 3), slice(6, 9), (1.0,), k)
+            val = torch.cat([(pose.jaw_R - self.jaw_tR).reshape(J, 9), (pose.jaw_t - self.jaw_tt) / u], 1)
+            _add_stencil(H, g, val, _blocks([dR(pose.jaw_R), eye3]), slice(6, 12), (1.0,), k)
         if s.coeff_temporal_weight > 0 and J > 1:
             k = math.sqrt(s.coeff_temporal_weight / (J - 1))
             _add_stencil(H, g, self.Fw_mean + c, torch.eye(E, dtype=c.dtype).expand(J, E, E), slice(12, n),
@@ -230,6 +229,17 @@ def _skew(v: torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.stack([z, -v[..., 2], v[..., 1]], -1),
                         torch.stack([v[..., 2], z, -v[..., 0]], -1),
                         torch.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _blocks(G: list[torch.Tensor]) -> torch.Tensor:
+    """Per-frame block diagonal ``(J, sum q_i, sum c_i)`` of ``G_i (J, q_i, c_i)``."""
+    J = G[0].shape[0]
+    out = G[0].new_zeros(J, sum(x.shape[1] for x in G), sum(x.shape[2] for x in G))
+    r = c = 0
+    for x in G:
+        out[:, r:r + x.shape[1], c:c + x.shape[2]] = x
+        r, c = r + x.shape[1], c + x.shape[2]
+    return out
 
 
 def _add_stencil(H: torch.Tensor, g: torch.Tensor, v: torch.Tensor, G: torch.Tensor, cols: slice,
