@@ -37,7 +37,7 @@ from models.aim import AIMConfig, AnatomicalFaceModel
 from models.checks import check_shapes
 from models.losses import (LossWeights, anatomy_losses, skin_position_loss, skinning_weight_loss,
                            symmetry_loss, thickness_regularizer)
-from models.rotation import identity_6d, kabsch, matrix_to_rot6d, rot6d_to_matrix
+from models.rotation import apply_rigid, identity_6d, kabsch, matrix_to_rot6d, rot6d_to_matrix
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,11 @@ class TrainSettings:
     lr: float = 2e-3
     lr_final_fraction: float = 0.01
     """Cosine decay of the learning rate to this fraction of ``lr``; 1.0 keeps it constant."""
+    hidden_lr_scale: float = 1.0
+    """Adam's learning rate of the hidden (sine) layers of the five networks relative to ``lr``
+    (the output layers and the jaw transforms keep ``lr``). With ``hidden_omega_0 = 1`` a step of
+    lr moves a hidden layer 30 times less, relative to its weights, than in the paper's
+    ``omega_0 = 30`` parametrisation; a scale of 3 gives part of that speed back (issue 13)."""
     width: int = 256
     depth: int = 3
     first_omega_0: float = 30.0
@@ -58,6 +63,10 @@ class TrainSettings:
     importance: float = 0.0
     """Fraction of the sampled points drawn in proportion to the current per-vertex error (known
     from the last closed-form solve), the rest uniformly; 0 = uniform sampling."""
+    symmetry_points: int = 0
+    """Of the sampled points, how many (the first, a uniform subset of the step's draws) also carry
+    the symmetry term, whose B evaluation at the mirrored points is a third of a sampled step's
+    work for a term of weight 1e-4; 0 = all of them. Ignored when every point is used."""
     importance_reweight: bool = True
     """Weight each sampled point by ``1 / (V q)`` (q its probability) so that the per-point means
     of the losses stay unbiased estimates of the paper's means over all points."""
@@ -74,6 +83,11 @@ class TrainSettings:
     expression_solve_ridge: float = 1e-6
     anatomy_solve: bool = True
     """Also solve B's and D's output layers jointly (``solve_anatomy``)."""
+    skinning_solve: bool = False
+    """With every expression solve, first set K's linear output layer to its least-squares optimum
+    (``solve_skinning``): training shape i is ``s0 + k (T_i(s0) - s0) + E_i``, linear in k, and
+    the forehead and jaw terms are quadratic in k too, so the skin, forehead and jaw terms are one
+    quadratic in K's output layer. (Then E is solved for that K: alternating exact solves.)"""
     anatomy_solve_every: int = 0
     """Steps between the anatomy solves (0 = with every expression solve)."""
     expression_solve_start: float = 0.0
@@ -102,9 +116,9 @@ class TrainSettings:
 
 PRESETS: dict[str, TrainSettings] = {
     "default": TrainSettings(),
-    "fast": TrainSettings(iterations=1800, points_per_step=2048, importance=0.5, importance_reweight=False,
+    "fast": TrainSettings(iterations=2200, points_per_step=2048, importance=0.5, importance_reweight=False,
                           expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True,
-                          freeze_solved_layers=True),
+                          freeze_solved_layers=True, hidden_lr_scale=3.0, symmetry_points=256),
     "paper": TrainSettings(iterations=10_000, lr=2e-3, lr_final_fraction=1.0, width=256, depth=3,
                            first_omega_0=30.0, hidden_omega_0=30.0, expression_solve_every=0, anatomy_solve=False,
                            jaw_skinning_prior=0.0, points_per_step=0, importance=0.0, solve_at_start=False),
@@ -213,8 +227,14 @@ class ActorTrainer:
         # The jaw translation is optimised in units of ``length_unit_mm`` so that Adam's steps
         # (about lr per iteration) move it as fast as the rotation, not 10x slower in mm.
         self.jaw_t_units = torch.nn.Parameter(torch.zeros(n_expr, 3, device=self.device))
-        self.optimizer = torch.optim.Adam(list(self.model.parameters()) + [self.jaw_rot6d, self.jaw_t_units],
-                                          lr=settings.lr)
+        if settings.hidden_lr_scale == 1.0:  # one group, in the order of earlier checkpoints
+            groups = [{"params": list(self.model.parameters()) + [self.jaw_rot6d, self.jaw_t_units]}]
+        else:
+            hidden = [p for n, p in self.model.named_parameters() if ".layers." in n]
+            others = [p for n, p in self.model.named_parameters() if ".layers." not in n]
+            groups = [{"params": others + [self.jaw_rot6d, self.jaw_t_units]},
+                      {"params": hidden, "lr": settings.lr * settings.hidden_lr_scale}]
+        self.optimizer = torch.optim.Adam(groups, lr=settings.lr)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self._lr_factor)
         self._init_jaw()
         self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
@@ -281,8 +301,9 @@ class ActorTrainer:
         """Weighted loss terms on the points of ``sample`` (all when None); key ``total`` sums them.
 
         Each network runs only on the points its terms need: B, D and N on the skin and the
-        constrained points (B also on the mirrored skin for the symmetry term), K on the skin,
-        forehead and jaw points, E on the skin.
+        constrained points (B also on the mirrored skin for the symmetry term, or on the mirror
+        images of the first ``symmetry_points`` of a sample), K on the skin, forehead and jaw
+        points, E on the skin.
         """
         w, unit, d, model = self.settings.weights, self.settings.weights.length_unit_mm, self.data, self.model
         index = None if sample is None else sample.index
@@ -295,7 +316,8 @@ class ActorTrainer:
         thick_t = d.thickness_target if ci is None else d.thickness_target[ci]
         normal_t = d.normal_target if ci is None else d.normal_target[ci]
         m, mc, mf = c.shape[0], cc.shape[0], d.forehead_points.shape[0]
-        reflected = d.reflect(c)
+        ns = m if sample is None or self.settings.symmetry_points <= 0 else min(m, self.settings.symmetry_points)
+        reflected = d.reflect(c[:ns])
         x = model.normalize(torch.cat([c, cc, reflected], dim=0))
         out_b = model.B(x)
         out_d, out_n = model.D(x[:m + mc]), model.N(x[:m + mc])
@@ -310,7 +332,8 @@ class ActorTrainer:
             "skin": w.skin * skin_position_loss(pred, target, unit, pw),
             "bone": w.bone * lb, "thickness": w.thickness * ld, "normal": w.normal * ln,
             "thickness_reg": w.thickness_reg * thickness_regularizer(skin.thickness, unit, pw),
-            "symmetry": w.symmetry * symmetry_loss(bone_of_reflected, d.reflect(skin.bone), unit, pw),
+            "symmetry": w.symmetry * symmetry_loss(bone_of_reflected, d.reflect(skin.bone[:ns]), unit,
+                                                   None if pw is None else pw[:ns]),
             "forehead": w.forehead_skinning * skinning_weight_loss(out_k[m:m + mf].squeeze(-1)),
         }
         if self.settings.jaw_skinning_prior > 0:
@@ -350,6 +373,8 @@ class ActorTrainer:
         features = {name: getattr(self.model, name).features(x) for name in self.model.NETWORKS}
         if anatomy:
             self.solve_anatomy(features)
+        if self.settings.skinning_solve:
+            self.solve_skinning(features)
         self.solve_expressions(features)
 
     def _template_anatomy(self, features: dict[str, torch.Tensor] | None):
@@ -391,6 +416,50 @@ class ActorTrainer:
         self.vertex_error = (left / (n_expr + 1)).sqrt().float()
         # Adam's running moments belong to the old weights; restart them for this layer.
         for p in (model.E.output.weight, model.E.output.bias):
+            self.optimizer.state.pop(p, None)
+            self._solved.add(p)
+
+    @torch.no_grad()
+    def solve_skinning(self, features: dict[str, torch.Tensor] | None = None) -> None:
+        """Set K's linear output layer to its least-squares optimum with everything else fixed.
+
+        With ``a_ip = T_i(s0_p) - s0_p`` (where the jaw would carry point p of the neutral in shape
+        i) and ``z_ip = s_ip - s0_p - E_ip`` (what the skinning must explain), the skin loss of the
+        expressions is ``sum |z_ip - k_p a_ip|^2`` with ``k_p = h_p . u`` (h: K's last sine
+        features with a 1 appended, u: K's output weights and bias). With the forehead term
+        ``mean k^2`` and the jaw prior ``mean (k - 1)^2`` it is one (width+1)-square normal
+        equation. (The neutral does not depend on k.)
+        """
+        d, model, w = self.data, self.model, self.settings.weights
+        f64 = torch.float64
+        an, features = self._template_anatomy(features)
+        P, N = d.template.shape[0], d.shapes.shape[0]
+        s0 = an.neutral.double()
+        R = rot6d_to_matrix(self.jaw_rot6d).double()
+        moved = apply_rigid(s0.expand(N - 1, -1, -1), R, self.jaw_t.double(), model.jaw_pivot.double())
+        a = moved - s0                                                   # (N-1, P, 3)
+        z = d.shapes[1:].double() - s0 - an.expressions.permute(1, 0, 2).double()
+        alpha = a.square().sum((0, 2))                                   # (P,)
+        beta = (a * z).sum((0, 2))
+        ones = lambda h: torch.cat([h.double(), torch.ones_like(h[:, :1], dtype=f64)], 1)
+        h = ones(features["K"])
+        a_s = w.skin / (N * P * w.length_unit_mm ** 2)
+        M = a_s * (h.T * alpha) @ h
+        rhs = a_s * h.T @ beta
+        if d.forehead_points.shape[0]:
+            hf = ones(model.K.features(model.normalize(d.forehead_points)))
+            M += w.forehead_skinning / hf.shape[0] * hf.T @ hf
+        if self.settings.jaw_skinning_prior > 0 and d.jaw_points.shape[0]:
+            hj = ones(model.K.features(model.normalize(d.jaw_points)))
+            M += self.settings.jaw_skinning_prior / hj.shape[0] * hj.T @ hj
+            rhs += self.settings.jaw_skinning_prior / hj.shape[0] * hj.sum(0)
+        M += self.settings.expression_solve_ridge * torch.trace(M) / M.shape[0] * torch.eye(
+            M.shape[0], dtype=f64, device=M.device)
+        u = torch.linalg.solve(M, rhs)
+        layer = model.K.output
+        layer.weight.copy_(u[None, :-1].to(layer.weight.dtype))
+        layer.bias.copy_(u[-1:].to(layer.bias.dtype))
+        for p in (layer.weight, layer.bias):
             self.optimizer.state.pop(p, None)
             self._solved.add(p)
 
