@@ -14,8 +14,8 @@ Presets (:data:`PRESETS`):
   layers of E, B and D every 100 steps (``expression_solve_every``): with everything else fixed
   the skin loss is quadratic in E's output layer, so its least-squares optimum is one small
   linear solve (width x width) instead of thousands of Adam steps.
-* ``fast``: the same five networks and losses in 1,800 cheaper steps (issue 13; about 3x less
-  CPU per unit of error early on, but it ends at a higher error than ``default``, BENCHMARKS.md):
+* ``fast``: the same five networks and losses in 2,200 cheaper steps (issue 13; it ends at a
+  higher error than ``default`` in a third of its CPU time, BENCHMARKS.md):
   E is solved before the first step (the expression field starts at the fit of the shape deltas)
   and every 10 steps, B's and D's output layers jointly every 50 (``solve_anatomy``); each Adam
   step sees 2,048 template points (and the same share of the constrained points), half of them
@@ -23,7 +23,10 @@ Presets (:data:`PRESETS`):
   point. Once solved, those output layers are left out of Adam (``freeze_solved_layers``): a
   fresh Adam state moves every weight of a just-solved layer by about lr in its first step,
   which took the mean error from 0.24 to 0.98 mm within 4 steps of a solve.
-  Each network runs only on the points its losses need (:meth:`ActorTrainer.losses`).
+  Each network runs only on the points its losses need (:meth:`ActorTrainer.losses`). The hidden
+  sine layers step at 3x the learning rate of the output layers (``hidden_lr_scale``; about 2x
+  less CPU to the same error), and the symmetry term (weight 1e-4) sees the mirror images of 256
+  of the step's points, not all 2,048 (``symmetry_points``; 10 % cheaper steps).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from models.aim import AIMConfig, AnatomicalFaceModel
 from models.checks import check_shapes
 from models.losses import (LossWeights, anatomy_losses, skin_position_loss, skinning_weight_loss,
                            symmetry_loss, thickness_regularizer)
-from models.rotation import apply_rigid, identity_6d, kabsch, matrix_to_rot6d, rot6d_to_matrix
+from models.rotation import identity_6d, kabsch, matrix_to_rot6d, rot6d_to_matrix
 
 
 @dataclass(frozen=True)
@@ -83,11 +86,6 @@ class TrainSettings:
     expression_solve_ridge: float = 1e-6
     anatomy_solve: bool = True
     """Also solve B's and D's output layers jointly (``solve_anatomy``)."""
-    skinning_solve: bool = False
-    """With every expression solve, first set K's linear output layer to its least-squares optimum
-    (``solve_skinning``): training shape i is ``s0 + k (T_i(s0) - s0) + E_i``, linear in k, and
-    the forehead and jaw terms are quadratic in k too, so the skin, forehead and jaw terms are one
-    quadratic in K's output layer. (Then E is solved for that K: alternating exact solves.)"""
     anatomy_solve_every: int = 0
     """Steps between the anatomy solves (0 = with every expression solve)."""
     expression_solve_start: float = 0.0
@@ -373,8 +371,6 @@ class ActorTrainer:
         features = {name: getattr(self.model, name).features(x) for name in self.model.NETWORKS}
         if anatomy:
             self.solve_anatomy(features)
-        if self.settings.skinning_solve:
-            self.solve_skinning(features)
         self.solve_expressions(features)
 
     def _template_anatomy(self, features: dict[str, torch.Tensor] | None):
@@ -416,50 +412,6 @@ class ActorTrainer:
         self.vertex_error = (left / (n_expr + 1)).sqrt().float()
         # Adam's running moments belong to the old weights; restart them for this layer.
         for p in (model.E.output.weight, model.E.output.bias):
-            self.optimizer.state.pop(p, None)
-            self._solved.add(p)
-
-    @torch.no_grad()
-    def solve_skinning(self, features: dict[str, torch.Tensor] | None = None) -> None:
-        """Set K's linear output layer to its least-squares optimum with everything else fixed.
-
-        With ``a_ip = T_i(s0_p) - s0_p`` (where the jaw would carry point p of the neutral in shape
-        i) and ``z_ip = s_ip - s0_p - E_ip`` (what the skinning must explain), the skin loss of the
-        expressions is ``sum |z_ip - k_p a_ip|^2`` with ``k_p = h_p . u`` (h: K's last sine
-        features with a 1 appended, u: K's output weights and bias). With the forehead term
-        ``mean k^2`` and the jaw prior ``mean (k - 1)^2`` it is one (width+1)-square normal
-        equation. (The neutral does not depend on k.)
-        """
-        d, model, w = self.data, self.model, self.settings.weights
-        f64 = torch.float64
-        an, features = self._template_anatomy(features)
-        P, N = d.template.shape[0], d.shapes.shape[0]
-        s0 = an.neutral.double()
-        R = rot6d_to_matrix(self.jaw_rot6d).double()
-        moved = apply_rigid(s0.expand(N - 1, -1, -1), R, self.jaw_t.double(), model.jaw_pivot.double())
-        a = moved - s0                                                   # (N-1, P, 3)
-        z = d.shapes[1:].double() - s0 - an.expressions.permute(1, 0, 2).double()
-        alpha = a.square().sum((0, 2))                                   # (P,)
-        beta = (a * z).sum((0, 2))
-        ones = lambda h: torch.cat([h.double(), torch.ones_like(h[:, :1], dtype=f64)], 1)
-        h = ones(features["K"])
-        a_s = w.skin / (N * P * w.length_unit_mm ** 2)
-        M = a_s * (h.T * alpha) @ h
-        rhs = a_s * h.T @ beta
-        if d.forehead_points.shape[0]:
-            hf = ones(model.K.features(model.normalize(d.forehead_points)))
-            M += w.forehead_skinning / hf.shape[0] * hf.T @ hf
-        if self.settings.jaw_skinning_prior > 0 and d.jaw_points.shape[0]:
-            hj = ones(model.K.features(model.normalize(d.jaw_points)))
-            M += self.settings.jaw_skinning_prior / hj.shape[0] * hj.T @ hj
-            rhs += self.settings.jaw_skinning_prior / hj.shape[0] * hj.sum(0)
-        M += self.settings.expression_solve_ridge * torch.trace(M) / M.shape[0] * torch.eye(
-            M.shape[0], dtype=f64, device=M.device)
-        u = torch.linalg.solve(M, rhs)
-        layer = model.K.output
-        layer.weight.copy_(u[None, :-1].to(layer.weight.dtype))
-        layer.bias.copy_(u[-1:].to(layer.bias.dtype))
-        for p in (layer.weight, layer.bias):
             self.optimizer.state.pop(p, None)
             self._solved.add(p)
 
