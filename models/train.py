@@ -14,8 +14,8 @@ Presets (:data:`PRESETS`):
   layers of E, B and D every 100 steps (``expression_solve_every``): with everything else fixed
   the skin loss is quadratic in E's output layer, so its least-squares optimum is one small
   linear solve (width x width) instead of thousands of Adam steps.
-* ``fast``: the same five networks and losses in 2,200 cheaper steps (issue 13; it ends at a
-  higher error than ``default`` in a third of its CPU time, BENCHMARKS.md):
+* ``fast``: the same five networks and losses in 2,000 cheaper steps (issue 13; it ends at a
+  higher error than ``default`` in a sixth of its CPU time, BENCHMARKS.md):
   E is solved before the first step (the expression field starts at the fit of the shape deltas)
   and every 10 steps, B's and D's output layers jointly every 50 (``solve_anatomy``); each Adam
   step sees 2,048 template points (and the same share of the constrained points), half of them
@@ -24,9 +24,10 @@ Presets (:data:`PRESETS`):
   fresh Adam state moves every weight of a just-solved layer by about lr in its first step,
   which took the mean error from 0.24 to 0.98 mm within 4 steps of a solve.
   Each network runs only on the points its losses need (:meth:`ActorTrainer.losses`). The hidden
-  sine layers step at 3x the learning rate of the output layers (``hidden_lr_scale``; about 2x
-  less CPU to the same error), and the symmetry term (weight 1e-4) sees the mirror images of 256
-  of the step's points, not all 2,048 (``symmetry_points``; 10 % cheaper steps).
+  sine layers step at 3x the learning rate of the output layers (``hidden_lr_scale``: the
+  previous preset's end error in 2.7x less CPU), and the symmetry term (weight 1e-4) sees the
+  mirror images of 256 of the step's points, not all 2,048 (``symmetry_points``; 10 % cheaper
+  steps).
 """
 
 from __future__ import annotations
@@ -114,7 +115,7 @@ class TrainSettings:
 
 PRESETS: dict[str, TrainSettings] = {
     "default": TrainSettings(),
-    "fast": TrainSettings(iterations=2200, points_per_step=2048, importance=0.5, importance_reweight=False,
+    "fast": TrainSettings(iterations=2000, points_per_step=2048, importance=0.5, importance_reweight=False,
                           expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True,
                           freeze_solved_layers=True, hidden_lr_scale=3.0, symmetry_points=256),
     "paper": TrainSettings(iterations=10_000, lr=2e-3, lr_final_fraction=1.0, width=256, depth=3,
