@@ -155,3 +155,22 @@ def test_hidden_layers_step_at_their_own_rate(trainer, scale):
     rates = [g["lr"] for g in tr.optimizer.param_groups]
     assert max(rates) == pytest.approx(scale * min(rates) if scale != 1.0 else rates[0], rel=1e-9)
     assert max(rates) < scale * lr
+
+
+def test_two_rate_training_resumes_exactly(trainer):
+    """A checkpoint of the fast preset (two Adam groups, frozen solved layers) continues exactly."""
+    import copy
+
+    settings = trainer.settings
+    assert settings.hidden_lr_scale == 3.0 and len(trainer.optimizer.param_groups) == 2
+    a = ActorTrainer(trainer.data, settings, trainer.model.config)
+    for _ in range(12):  # past the solve at step 10
+        a.step()
+    b = ActorTrainer(trainer.data, settings, trainer.model.config)
+    b.load_state_dict(copy.deepcopy(a.state_dict()))
+    for _ in range(9):  # through the next solve
+        a.step()
+        b.step()
+    assert [g["lr"] for g in a.optimizer.param_groups] == [g["lr"] for g in b.optimizer.param_groups]
+    for (name, p), q in zip(a.model.named_parameters(), b.model.parameters()):
+        torch.testing.assert_close(p.detach(), q.detach(), rtol=0, atol=1e-6, msg=name)
