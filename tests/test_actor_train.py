@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +77,9 @@ def test_show_and_list(trained, capsys, monkeypatch):
     out = capsys.readouterr().out
     for token in ("jawOpen", "mean error mm", "anatomy residuals", "symmetry residual", "forehead"):
         assert token in out
+    # the training time (wall and CPU) stays in the report (issue 13)
+    flat = " ".join(out.split())  # the console wraps long lines
+    assert re.search(r"training: preset \w+, \d+ iterations, .* [\d.]+ min on cpu \([\d.]+ min CPU", flat), out
     monkeypatch.setenv("CAPTURE_ACTORS", str(actor_dir.parent))
     assert main(["actor", "list"]) == 0
     assert "tiny" in capsys.readouterr().out

@@ -1,8 +1,10 @@
 """The faster trainer computes the paper's losses: against the plain all-networks-everywhere reference,
-unbiased under importance sampling; and the plain-line progress (``--no-progress``)."""
+unbiased under importance sampling; the hidden layers' own learning rate; and the plain-line
+progress (``--no-progress``)."""
 
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 
 import pytest
@@ -22,7 +24,7 @@ def trainer(tmp_path_factory):
     options = TrainOptions(actor="x", shapes=shapes, skull=skull, jaw=jaw)
     data, extras = prepare(options, load_shape_dir(shapes), report=lambda m: None)
     settings = resolve_settings("fast", dict(width=32, iterations=100, points_per_step=400, importance=0.5,
-                                                importance_reweight=True))
+                                                importance_reweight=True, symmetry_points=150))
     tr = ActorTrainer(data, settings, model_config_for(data, settings, extras["jaw_pivot"]))
     for _ in range(10):  # away from the initialisation
         tr.step()
@@ -31,10 +33,13 @@ def trainer(tmp_path_factory):
 
 
 def _reference_terms(tr: ActorTrainer, index=None, weights=None, con_index=None) -> dict[str, torch.Tensor]:
-    """The losses the readable way: every network on every point through ``model.forward``."""
+    """The losses the readable way: every network on every point through ``model.forward``; the
+    symmetry term of a sample on its first ``symmetry_points`` draws."""
     d, w, model = tr.data, tr.settings.weights, tr.model
     unit = w.length_unit_mm
     c = d.template if index is None else d.template[index]
+    ns = len(c) if index is None or tr.settings.symmetry_points <= 0 else tr.settings.symmetry_points
+    ws = None if weights is None else weights[:ns]
     target = d.shapes if index is None else d.shapes[:, index]
     sel = slice(None) if con_index is None else con_index
     skin = model(c)
@@ -43,11 +48,13 @@ def _reference_terms(tr: ActorTrainer, index=None, weights=None, con_index=None)
     lb, ld, ln = anatomy_losses(con.bone, con.thickness, con.normal, d.bone_target[sel], d.thickness_target[sel],
                                 d.normal_target[sel], unit)
     per_point = lambda v: v.mean() if weights is None else (v * weights).mean()
+    per_mirrored = lambda v: v.mean() if ws is None else (v * ws).mean()
     return {
         "skin": w.skin * per_point(((pred - target) / unit).square().sum(-1)),
         "bone": w.bone * lb, "thickness": w.thickness * ld, "normal": w.normal * ln,
         "thickness_reg": w.thickness_reg * per_point((skin.thickness / unit).square()),
-        "symmetry": w.symmetry * per_point(((model.bone(d.reflect(c)) - d.reflect(skin.bone)) / unit).square().sum(-1)),
+        "symmetry": w.symmetry * per_mirrored((
+            (model.bone(d.reflect(c[:ns])) - d.reflect(skin.bone[:ns])) / unit).square().sum(-1)),
         "forehead": w.forehead_skinning * skinning_weight_loss(model(d.forehead_points).skin_weight),
         "jaw": tr.settings.jaw_skinning_prior * skinning_weight_loss(model(d.jaw_points).skin_weight - 1),
     }
@@ -121,3 +128,50 @@ def test_solved_output_layers_stay_out_of_adam(trainer):
     # The set of frozen layers survives a checkpoint.
     state = trainer.state_dict()
     assert "E.output.weight" in state["solved_layers"] and "N.output.weight" not in state["solved_layers"]
+
+
+@pytest.mark.parametrize("scale", [1.0, 3.0])
+def test_hidden_layers_step_at_their_own_rate(trainer, scale):
+    """Adam's first step moves each weight by about its group's lr (m/sqrt(v) = sign(g)): the sine
+    layers by ``hidden_lr_scale * lr``, the output layers and the jaw transforms by ``lr``."""
+    settings = replace(trainer.settings, hidden_lr_scale=scale, solve_at_start=False, expression_solve_every=0)
+    tr = ActorTrainer(trainer.data, settings, trainer.model.config)
+    params = dict(tr.model.named_parameters())
+    grouped = [p for g in tr.optimizer.param_groups for p in g["params"]]
+    assert len(grouped) == len(set(map(id, grouped))) == len(params) + 2  # every parameter once, + jaw R, t
+    before = {n: p.detach().clone() for n, p in params.items()}
+    jaw_before = tr.jaw_t_units.detach().clone()
+    tr.step()
+    lr = settings.lr
+    for name in ("B.layers.1.linear.weight", "E.layers.0.linear.weight", "N.layers.2.linear.bias",
+                 "N.output.weight", "K.output.bias", "E.output.weight"):
+        step = (params[name].detach() - before[name]).abs()
+        expected = lr * (scale if ".layers." in name else 1.0)
+        moved = step[step > 0.01 * expected]
+        assert moved.numel() > 0.9 * step.numel(), name
+        torch.testing.assert_close(moved.median(), torch.tensor(expected), rtol=0.02, atol=0, msg=name)
+    jaw_step = (tr.jaw_t_units.detach() - jaw_before).abs().max()
+    assert float(jaw_step) == pytest.approx(lr, rel=0.02)
+    # the cosine decay applies to both groups alike
+    for _ in range(4):
+        tr.step()
+    rates = [g["lr"] for g in tr.optimizer.param_groups]
+    assert len(rates) == (1 if scale == 1.0 else 2)
+    assert rates[-1] == pytest.approx(scale * rates[0], rel=1e-9) and rates[0] < lr
+
+
+def test_two_rate_training_resumes_exactly(trainer):
+    """A checkpoint of the fast preset (two Adam groups, frozen solved layers) continues exactly."""
+    settings = trainer.settings
+    assert settings.hidden_lr_scale == 3.0 and len(trainer.optimizer.param_groups) == 2
+    a = ActorTrainer(trainer.data, settings, trainer.model.config)
+    for _ in range(12):  # past the solve at step 10
+        a.step()
+    b = ActorTrainer(trainer.data, settings, trainer.model.config)
+    b.load_state_dict(copy.deepcopy(a.state_dict()))
+    for _ in range(9):  # through the next solve
+        a.step()
+        b.step()
+    assert [g["lr"] for g in a.optimizer.param_groups] == [g["lr"] for g in b.optimizer.param_groups]
+    for (name, p), q in zip(a.model.named_parameters(), b.model.parameters()):
+        torch.testing.assert_close(p.detach(), q.detach(), rtol=0, atol=1e-6, msg=name)
