@@ -88,10 +88,16 @@ def test_render_html_is_self_contained():
     page = render_html(report, s, figures(s), thumbs)
     assert not re.search(r"(src|href)\s*=\s*['\"]?(https?:|//)", page) and "<script" not in page
     imgs = re.findall(r"src='data:image/png;base64,([^']+)'", page)
-    assert len(imgs) == 6                                   # 5 figures + 1 thumbnail
-    for b in imgs:
-        img = cv2.imdecode(np.frombuffer(base64.b64decode(b), np.uint8), cv2.IMREAD_COLOR)
-        assert img is not None and img.size > 0
+    assert len(imgs) == 1                                   # the thumbnail
+    img = cv2.imdecode(np.frombuffer(base64.b64decode(imgs[0]), np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None and img.size > 0
+    svgs = re.findall(r"src='data:image/svg\+xml;base64,([^']+)'", page)
+    assert len(svgs) == 5                                   # the figures: well-formed SVG with their labels as text
+    import xml.etree.ElementTree as ET
+
+    roots = [ET.fromstring(base64.b64decode(b)) for b in svgs]
+    assert all(r.tag.endswith("svg") for r in roots)
+    assert "jawOpen" in base64.b64decode(svgs[3]).decode()  # the expression names are text, not paths
     assert "take7.mp4" in page and "DEFAULT CAMERA" in page and "worst frame 21" in page
     assert "1 bridged" in page and "1 without a face" in page
 
