@@ -137,8 +137,8 @@ def _svg(fig) -> str:
 
 
 def _subplots(plt, figsize: tuple[float, float], ncols: int = 1, left_in: float = 0.75, top_in: float = 0.3):
-    """``plt.subplots`` with margins fixed in inches: the same frame as a constrained layout for these
-    plots, without its extra text-extent passes (they took half of the report's drawing time)."""
+    """``plt.subplots`` with margins fixed in inches, which fit these plots' labels: a constrained layout
+    would measure every text first (half of the report's drawing time)."""
     fig, axes = plt.subplots(1, ncols, figsize=figsize)
     w, h = figsize
     fig.subplots_adjust(left=left_in / w, right=1 - 0.3 / w, bottom=0.5 / h, top=1 - top_in / h,
