@@ -116,7 +116,7 @@ def test_rig_plays_the_fit_base_within_its_base_versus_full_difference(fit3d_run
 
     out = fit3d_run
     assert (out / "take.usdc").is_file() and (out / "curves.csv").is_file()   # curves implies usd
-    assert "<img alt='3D error' src='data:image/png;base64," in (out / "report.html").read_text()
+    assert "<img alt='3D error' src='data:image/svg+xml;base64," in (out / "report.html").read_text()
     fit_dir = next(p for p in (out / "fit").iterdir() if p.is_dir())
     fits = list(iter_fits(fit_dir))
     played = evaluate_rig(out / "take.usdc", [f.frame for f in fits])
