@@ -15,7 +15,7 @@ Presets (:data:`PRESETS`):
   the skin loss is quadratic in E's output layer, so its least-squares optimum is one small
   linear solve (width x width) instead of thousands of Adam steps. The hidden sine layers step at
   3x the learning rate of the output layers (``hidden_lr_scale``, issue 13: on the sample actor
-  0.065 mm at step 2,000 against 0.086 mm at the end of 3,000 steps without it).
+  0.061 mm after 3,000 steps against 0.086 mm without it).
 * ``fast``: the same five networks and losses in 2,000 cheaper steps (issue 13; it ends at a
   higher error than ``default`` in a sixth of its CPU time, BENCHMARKS.md):
   E is solved before the first step (the expression field starts at the fit of the shape deltas)
