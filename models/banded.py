@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["block_bandwidth", "solve_banded_blocks", "solve_block_banded", "solve_block_tridiagonal"]
+__all__ = ["block_bandwidth", "solve_banded_blocks", "solve_block_tridiagonal"]
 
 
 def solve_block_tridiagonal(D: torch.Tensor, U: torch.Tensor | None, g: torch.Tensor) -> torch.Tensor | None:
@@ -49,10 +49,9 @@ def solve_block_tridiagonal(D: torch.Tensor, U: torch.Tensor | None, g: torch.Te
     return torch.stack(x)
 
 
-def block_bandwidth(H: torch.Tensor, n: int) -> int:
-    """The largest ``|j - k|`` of a nonzero ``(n, n)`` block ``H[j, k]`` of ``H (J n, J n)``."""
-    J = H.shape[0] // n
-    nz = torch.nonzero(H.reshape(J, n, J, n).abs().amax((1, 3)) > 0)
+def block_bandwidth(H: torch.Tensor) -> int:
+    """The largest ``|j - k|`` of a nonzero block ``H[j, k]`` of ``H (J, J, n, n)``."""
+    nz = torch.nonzero(H.abs().amax((2, 3)) > 0)
     return int((nz[:, 0] - nz[:, 1]).abs().max()) if len(nz) else 0
 
 
@@ -98,14 +97,3 @@ def solve_banded_blocks(H: torch.Tensor, g: torch.Tensor, b: int, damping: torch
         D.diagonal(dim1=1, dim2=2).add_(dd.view(G, m))
     x = solve_block_tridiagonal(D, U, rhs.view(G, m))
     return None if x is None else x.reshape(-1)[:J * n]
-
-
-def solve_block_banded(A: torch.Tensor, g: torch.Tensor, n: int, b: int | None = None) -> torch.Tensor | None:
-    """:func:`solve_banded_blocks` for a dense ``A (J n, J n)`` with ``n`` unknowns per frame and band ``b``
-    frames (default: :func:`block_bandwidth`); ``g (J n,)``."""
-    N = A.shape[0]
-    J = N // n
-    if A.shape != (N, N) or J * n != N or g.shape != (N,):
-        raise ValueError(f"A must be (J n, J n) and g (J n,) with n = {n}; got {tuple(A.shape)}, {tuple(g.shape)}")
-    b = block_bandwidth(A, n) if b is None else b
-    return solve_banded_blocks(A.reshape(J, n, J, n).permute(0, 2, 1, 3), g, b)

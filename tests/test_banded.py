@@ -3,7 +3,13 @@
 import pytest
 import torch
 
-from models.banded import block_bandwidth, solve_banded_blocks, solve_block_banded
+from models.banded import block_bandwidth, solve_banded_blocks
+
+
+def _blocks(A: torch.Tensor, n: int) -> torch.Tensor:
+    """``A (J n, J n)`` as its frame blocks ``(J, J, n, n)``."""
+    J = A.shape[0] // n
+    return A.reshape(J, n, J, n).permute(0, 2, 1, 3)
 
 
 def _banded_spd(J: int, n: int, b: int, seed: int = 0) -> torch.Tensor:
@@ -22,21 +28,21 @@ def _banded_spd(J: int, n: int, b: int, seed: int = 0) -> torch.Tensor:
 @pytest.mark.parametrize("J,n,b", [(30, 7, 2), (31, 5, 2), (13, 4, 1), (9, 3, 0), (10, 4, 3), (4, 3, 2)])
 def test_block_banded_solve_matches_dense(J, n, b):
     A = _banded_spd(J, n, b)
-    assert block_bandwidth(A, n) == b
+    assert block_bandwidth(_blocks(A, n)) == b
     rhs = torch.randn(J * n, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-    x = solve_block_banded(A, rhs, n)
+    x = solve_banded_blocks(_blocks(A, n), rhs, b)
     torch.testing.assert_close(x, torch.linalg.solve(A, rhs), rtol=1e-9, atol=1e-11)
 
 
 def test_block_banded_solve_reports_an_indefinite_matrix():
     A = _banded_spd(12, 4, 2)
     A[20:24, 20:24] *= -1                     # one frame's block negative: not positive definite
-    assert solve_block_banded(A, torch.ones(48, dtype=torch.float64), 4) is None
+    assert solve_banded_blocks(_blocks(A, 4), torch.ones(48, dtype=torch.float64), 2) is None
 
 
 def test_block_banded_solve_checks_shapes():
-    with pytest.raises(ValueError, match=r"\(J n, J n\)"):
-        solve_block_banded(torch.eye(10, dtype=torch.float64), torch.ones(10, dtype=torch.float64), 3)
+    with pytest.raises(ValueError, match=r"\(J, J, n, n\)"):
+        solve_banded_blocks(torch.eye(10, dtype=torch.float64).reshape(2, 5, 2, 5), torch.ones(10, dtype=torch.float64), 1)
 
 
 @pytest.mark.parametrize("J,b", [(30, 2), (7, 2), (11, 1)])
@@ -47,6 +53,5 @@ def test_banded_blocks_with_damping_match_dense(J, b):
     A.diagonal().sub_(3.0 * n * (b + 1))          # less dominant: the damping matters
     damping = torch.rand(J * n, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 50
     rhs = torch.randn(J * n, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
-    blocks = A.reshape(J, n, J, n).permute(0, 2, 1, 3)
-    x = solve_banded_blocks(blocks, rhs, b, damping)
+    x = solve_banded_blocks(_blocks(A, n), rhs, b, damping)
     torch.testing.assert_close(x, torch.linalg.solve(A + torch.diag(damping), rhs), rtol=1e-9, atol=1e-11)

@@ -178,8 +178,7 @@ def test_lm_energy_and_gradient_match_the_fitting_energy():
     # the band the solver assumes is the band the terms make (every temporal term is on here)
     from models.banded import block_bandwidth
 
-    n = prob.n
-    assert prob.frame_bandwidth == block_bandwidth(H.permute(0, 2, 1, 3).reshape(-1, H.shape[0] * n), n) == 2
+    assert prob.frame_bandwidth == block_bandwidth(H) == 2
 
 
 def test_lm_reaches_the_least_squares_minimum_of_scipy():
