@@ -6,9 +6,10 @@ file, which is played at its frame rate (as a camera would deliver it). Threads:
     capture    reads frames at the source's pace; a frame that finds the detector busy with a full
                queue is dropped (counted), so the pipeline never falls behind the source
     detect     Detector.detect one frame at a time, carrying the track from frame to frame
-    fit        capture.fit.stream.fit_take_stream, causal: windows of lag + 1 frames overlapping by
-               ``overlap``, head poses from past frames only; a frame is final when the window that
-               completes it is solved, at most ``lag`` frames after it arrived
+    feed, fit  capture.fit.stream.fit_take_stream in a process of its own (capture.fit.process), causal:
+               windows of lag + 1 frames overlapping by ``overlap``, head poses from past frames only; a
+               frame is final when the window that completes it is solved, at most ``lag`` frames after
+               it arrived
     main       the take's writers (params.npz, landmarks.npz, take.usdc, ...) and one JSON line per
                final frame to stdout or a UDP port
 
@@ -203,12 +204,10 @@ def run_live(cfg: LiveConfig, say: Callable[[str], None] | None = None) -> dict:
 
 def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, settings, window, overlap, out, sink, ctx,
               say, label) -> dict:
-    import torch
-
     from calib.camera_io import camera_to_dict
     from capture.detector.runtime import TrackState
     from capture.export import open_exporters
-    from capture.fit.stream import fit_take_stream
+    from capture.fit.process import FitStopped, FitWorker
     from capture.fit.take import WindowedFit
     from capture.io.atomic import write_json
     from capture.run.take import Detection
@@ -217,10 +216,9 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
     frames_in = queue.Queue(maxsize=max(1, cfg.queue_frames))   # capture -> detect (drops when full)
     lms = pl.pipe(max(1, cfg.queue_frames))      # small: a busy fit makes the capture drop, not queue
     fits = pl.pipe(8)
-    clocks = {k: StageClock() for k in ("capture", "detect", "fit", "export")}
+    clocks = {k: StageClock() for k in ("capture", "detect", "feed", "fit", "export")}
     stats = {"received": 0, "dropped": 0, "processed": 0}
     t_src: dict[int, float] = {}          # source frame -> capture time
-    received_newest = [-1]                # stream position of the newest frame the fit has read
     only = None if cfg.only_frames is None else set(int(i) for i in cfg.only_frames)
     t_start = time.perf_counter()
 
@@ -282,33 +280,35 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
     results: list = []
     position: list[int] = []
 
-    def fit():
-        torch.set_num_threads(max(1, int(cfg.threads)))
-
+    def feed():
         def rows():
             for r in lms:
                 results.append(r)
                 position.append(int(r.frame_index))
-                received_newest[0] = len(position) - 1
                 yield r.points, _frame_weights(r.points, r.confidence), bool(r.face_found)
 
-        how = WindowedFit(settings, window, overlap, None, "cpu", None)
-        t_last = time.perf_counter()
-        for ff in fit_take_stream(actor, rows(), points, camera.camera, how, causal=True):
-            j = int(ff.frame)
-            lag = received_newest[0] - j
-            now = time.perf_counter()
-            clocks["fit"].busy += now - t_last
-            fits.put((ff, j, lag, now - t_start))
-            t_last = time.perf_counter()
+        worker.feed(rows())
+
+    def fit():
+        try:
+            for ff, rows_read in worker.results(pl.stop):
+                j = int(ff.frame)
+                fits.put((ff, j, rows_read - 1 - j, time.perf_counter() - t_start))
+        except FitStopped:
+            raise _Stopped from None
+        clocks["fit"].busy = float(worker.timings.get("busy_s", 0.0))
         fits.put(_END)
 
+    how = WindowedFit(settings, window, overlap, None, "cpu", None)
     lags, latencies = [], []
     names: list[str] = []
+    # the fit's process is forked before any thread of this pipeline starts
+    worker = FitWorker(actor, points, camera.camera, how, causal=True, threads=cfg.threads)
     try:
         with open_exporters(cfg.formats, out, ctx) as writers:
             pl.start("capture", capture, clocks["capture"])
             pl.start("detect", detect, clocks["detect"])
+            pl.start("feed", feed, clocks["feed"])
             pl.start("fit", fit, clocks["fit"])
             try:
                 for ff, j, lag, t_final in fits:
@@ -329,12 +329,15 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
                     say("capture live: stopped; writing the take")
     except _Stopped:                          # a stage failed: raise its error
         pl.close()
+        worker.close()
         pl.check()
         raise
     except BaseException:
         pl.close()
+        worker.close()
         raise
     pl.close()
+    worker.close()
     wall = time.perf_counter() - t_start
     summary = {
         "format": "capture-live", "version": 1, "source": str(cfg.source), "label": label,

@@ -1,12 +1,16 @@
 """``capture run`` as a stream: decode -> detect -> fit -> export at the same time, through bounded queues.
 
-Stages and where they run (threads of one process; the heavy work of each releases the GIL: FFmpeg
-decoding, onnxruntime, torch, file writes)::
+Stages and where they run (threads of one process, but the fit; the heavy work of the threads releases
+the GIL: FFmpeg decoding, onnxruntime, file writes)::
 
     decode thread   VideoReader: the frames of the detection segments not in the cache     -> (segment group, frames)
     detect thread   cached segments read, the others detected (Detector.run_lanes)         -> FrameLandmarks per frame
-    fit thread      capture.fit.stream.fit_take_stream: each window solved as soon as      -> FrameFit per frame
+    feed thread     the landmarks checked (capture.run.checks) and sent to the fit process
+    fit process     capture.fit.stream.fit_take_stream: each window solved as soon as      -> FrameFit per frame
                     its frames (and the initial poses they depend on) are there
+                    (capture.fit.process: forked, so it has the loaded actor and a core of its own;
+                    a thread where fork is not available or with ``RunConfig.fit_process`` off)
+    fit thread      receives the fits, writes the fit's chunks
     main thread     the exporters (and a second VideoReader when the overlay needs images) -> files;
                     the progress bar ("fit", as capture batch follows it) counts the frames written
 
@@ -15,7 +19,8 @@ segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detect
 allocated off the heap (:func:`_frames_off_heap`), so memory stays flat in the take's length (about
 1.1 GB peak at 1920x1080, ``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
 event: an error or an interrupt in any stage stops all of them (a fit window being solved finishes
-first, and is kept), and the error is raised in the main thread (where SIGTERM and Ctrl-C arrive).
+first, and is kept), and the error is raised in the main thread (where SIGTERM and Ctrl-C arrive; the
+fit process ignores them and stops when the parent tells it).
 
 The results are those of the stage-by-stage run (:mod:`capture.run.stages`), to the bit: detection
 segments are the same independent tracking units, written to the same cache; the fit is the same
@@ -207,12 +212,10 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     ``detection_factory(frame_landmarks)`` gives what the exporters read beside a fit.
     Returns the track, the finished fit folder and the stage log (detect, fit, export).
     """
-    import torch
-
     from capture.detector.pipeline import _segment_path, _write_segment, stack_frames
     from capture.detector.runtime import Lane, TrackState
     from capture.export import EXPORTERS, open_exporters
-    from capture.fit.stream import fit_take_stream
+    from capture.fit.process import FitStopped, FitWorker
     from capture.io.video import VideoReader
     from capture.run.stages import DONE_JSON, EXPORT_JSON, FIT_CHUNK, LANDMARKS, fit_dir_for, fit_key, windowed_fit
 
@@ -232,7 +235,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     decoded = pipe_line.pipe(1)
     landmarks = pipe_line.pipe(QUEUE_FRAMES)
     fits = pipe_line.pipe(QUEUE_FRAMES)
-    clocks = {k: StageClock() for k in ("decode", "detect", "fit", "export")}
+    clocks = {k: StageClock() for k in ("decode", "detect", "feed", "fit", "export")}
     results: list = []                          # FrameLandmarks of the requested frames, in order
     stats = {"detected": 0, "cached": sum(len(v) for v in plan.cached.values())}
 
@@ -293,37 +296,37 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                                f"{plan.info.frame_count} frames); request frames below {lost}")
         landmarks.put(_END)
 
-    def fit():
+    def rows():
+        """The fit's rows, with the plausibility check of capture.run.checks frame by frame."""
         from capture.run.checks import landmark_problems
 
-        torch.set_num_threads(max(1, int(cfg.threads)))   # once, for this stage
-        frame_map: list[int] = []
-        found_any = [False]
+        found_any, problem = False, []
+        for r in landmarks:
+            frame_map.append(int(r.frame_index))
+            found = bool(r.face_found)
+            if found:
+                why = landmark_problems(np.asarray(r.points)[None],
+                                        None if r.confidence is None else np.asarray(r.confidence)[None])[0]
+                if why:
+                    found = False
+                    problem[:1] = problem[:1] or [why]
+            found_any |= found
+            yield r.points, _frame_weights(r.points, r.confidence), found
+        if not found_any and problem:
+            raise CaptureError(f"detector {det.name} found a face but no frame can be fitted ({problem[0]}); "
+                               f"check the detector's output decoding in its spec (docs/detector_spec.md)")
+        if not found_any:
+            raise CaptureError(f"detector {det.name} found no face in any of the {len(frame_map)} requested "
+                               f"frames; check the video, --frames and the detector (its spec's "
+                               f"crop.first_frame)")
 
-        problem: list[str] = []
+    frame_map: list[int] = []
+    how = replace(windowed_fit(inputs, stage_dir / "windows"), threads=None)
 
-        def rows():
-            for r in landmarks:
-                frame_map.append(int(r.frame_index))
-                found = bool(r.face_found)
-                if found:   # the plausibility check of capture.run.checks, frame by frame
-                    why = landmark_problems(np.asarray(r.points)[None],
-                                            None if r.confidence is None else np.asarray(r.confidence)[None])[0]
-                    if why:
-                        found = False
-                        problem[:1] = problem[:1] or [why]
-                found_any[0] |= found
-                yield r.points, _frame_weights(r.points, r.confidence), found
-            if not found_any[0] and problem:
-                raise CaptureError(f"detector {det.name} found a face but no frame can be fitted ({problem[0]}); "
-                                   f"check the detector's output decoding in its spec (docs/detector_spec.md)")
-            if not found_any[0]:
-                raise CaptureError(f"detector {det.name} found no face in any of the {len(frame_map)} requested "
-                                   f"frames; check the video, --frames and the detector (its spec's "
-                                   f"crop.first_frame)")
+    def feed():
+        worker.feed(rows())
 
-        how = replace(windowed_fit(inputs, stage_dir / "windows"), threads=None)
-        timings: dict = {}
+    def fit():
         chunks: list[str] = []
         pending: list = []
         fitted: list[int] = []
@@ -335,22 +338,20 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                 chunks.append(name)
                 pending.clear()
 
-        stream = fit_take_stream(inputs.actor, rows(), inputs.landmark_points, inputs.camera.camera, how,
-                                 timings=timings)
-        t_last = time.perf_counter()
-        for ff in stream:
-            ff = replace(ff, frame=frame_map[int(ff.frame)])
-            pending.append(ff)
-            fitted.append(int(ff.frame))
-            if len(pending) == FIT_CHUNK:
-                flush()
-            fits.put(ff)
-            now = time.perf_counter()
-            clocks["fit"].busy += now - t_last
-            t_last = now
+        try:
+            for ff, _ in worker.results(pipe_line.stop):
+                ff = replace(ff, frame=frame_map[int(ff.frame)])
+                pending.append(ff)
+                fitted.append(int(ff.frame))
+                if len(pending) == FIT_CHUNK:
+                    flush()
+                fits.put(ff)
+        except FitStopped:
+            raise _Stopped from None
         flush()
-        clocks["fit"].busy = max(0.0, clocks["fit"].busy - timings.get("wait_s", 0.0))
-        clocks["fit"].extra = {"chunks": chunks, "frames": fitted,
+        timings = worker.timings
+        clocks["fit"].busy = float(timings.get("busy_s", 0.0))
+        clocks["fit"].extra = {"chunks": chunks, "frames": fitted, "process": worker.in_process,
                                **{k: v for k, v in timings.items() if isinstance(v, (int, float))}}
         fits.put(_END)
 
@@ -362,11 +363,15 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     write_json(state_path, {"key": None, "status": "running", "files": [], "previous_files": sorted(previous)})
     ctx = replace(export_context, options=replace(export_context.options, overwrite=True))
     want_images = any(EXPORTERS[f].needs_image for f in formats)
+    # the fit's process is forked before any thread of this run starts
+    worker = FitWorker(inputs.actor, inputs.landmark_points, inputs.camera.camera, how, threads=cfg.threads,
+                       in_process=None if cfg.fit_process else False)
     try:
         with open_exporters(formats, out, ctx) as writers, StageProgress("fit", n_frames, progress) as bar:
             reader = VideoReader(cfg.video) if want_images else None
             pipe_line.start("decode", decode, clocks["decode"])
             pipe_line.start("detect", detect, clocks["detect"])
+            pipe_line.start("feed", feed, clocks["feed"])
             pipe_line.start("fit", fit, clocks["fit"])
             source = iter(reader.frames(plan.wanted)) if reader is not None else None
             try:
@@ -388,13 +393,16 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                     reader.close()
     except _Stopped:
         pipe_line.close()
+        worker.close()
         pipe_line.check()
         raise
     except BaseException:
         pipe_line.close()
+        worker.close()
         raise
     clocks["export"].busy += time.perf_counter() - t_close
     pipe_line.close()
+    worker.close()
     pipe_line.check()
     clocks["export"].finished = time.perf_counter() - pipe_line.t0
 
@@ -427,6 +435,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
          "faces_found": int(track.face_found.sum()), "streamed": True},
         {"stage": "fit", "status": "done", "seconds": c["fit"].busy, "finished_after_s": c["fit"].finished,
          "frames": len(fx.get("frames", [])), "fit_dir": str(final), "streamed": True,
+         "fit_process": bool(fx.get("process")),
          **{k: fx[k] for k in ("query_s", "pnp_s", "solve_s", "outputs_s", "windows_solved", "windows_cached")
             if k in fx}},
         {"stage": "export", "status": "done", "seconds": c["export"].busy, "finished_after_s": wall,

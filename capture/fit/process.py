@@ -1,0 +1,236 @@
+"""The streamed take fit in a process of its own, so that it has a core to itself.
+
+:func:`capture.fit.stream.fit_take_stream` is Python-heavy (many small torch ops per step), and in the
+threads of ``capture run``'s pipeline it shares the GIL with decoding and detection: at 300 frames it
+ran 1.3x slower there than alone. :class:`FitWorker` runs it in a child process instead, fed one row of
+landmarks at a time through a pipe, with the same results (the child runs the same code on the same
+numbers; its window cache is the same folder).
+
+The child is forked, so it starts at once with the parent's loaded actor (nothing is pickled but the
+rows and the fits). Fork it before the parent starts other threads (a lock held by another thread at
+the fork would stay held in the child). Where fork is not available (Windows, or ``in_process=True``)
+the same code runs in a thread, through the same pipes.
+
+Protocol::
+
+    parent -> child   (points (L, 2), weights (L,), face_found) per frame, then END (or ABORT)
+    child -> parent   ("fit", FrameFit, rows read so far) per frame, then ("end", timings),
+                      ("error", exception) or ("aborted",)
+
+Signals: the child ignores SIGINT and SIGTERM, which the parent handles (Ctrl-C reaches the whole process
+group): the parent then sends ABORT and the child stops after the window it is solving (that window is
+cached). If the parent dies, the child reads the end of its pipe and exits.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+import threading
+import time
+import traceback
+from typing import Iterable, Iterator
+
+END = "end"
+ABORT = "abort"
+JOIN_S = 600.0         # how long :meth:`FitWorker.close` waits for the window being solved
+
+
+class FitStopped(Exception):
+    """:meth:`FitWorker.results` was stopped from outside (its ``stop`` event)."""
+
+
+class _Aborted(Exception):
+    pass
+
+
+def _child_main(rows_conn, out_conn, parent_ends, actor, template_points, camera, how, causal, threads,
+                in_thread) -> None:
+    """The fit, reading rows from ``rows_conn`` and sending fits to ``out_conn``."""
+    if not in_thread:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        for c in parent_ends:          # forked copies: the parent's ends must close only in the parent
+            c.close()
+        _heap_for_compute()
+    import torch
+
+    from capture.fit.stream import fit_take_stream
+
+    torch.set_num_threads(max(1, int(threads)))      # once, for this stage
+
+    read = [0]
+
+    def rows():
+        while True:
+            try:
+                item = rows_conn.recv()
+            except EOFError:           # the parent is gone
+                raise _Aborted from None
+            if isinstance(item, str):
+                if item == END:
+                    return
+                raise _Aborted
+            read[0] += 1
+            yield item
+
+    timings: dict = {}
+    try:
+        busy, t_last = 0.0, time.perf_counter()
+        for ff in fit_take_stream(actor, rows(), template_points, camera, how, causal=causal, timings=timings):
+            now = time.perf_counter()
+            busy += now - t_last
+            out_conn.send(("fit", ff, read[0]))
+            t_last = time.perf_counter()
+        busy += time.perf_counter() - t_last
+        timings["busy_s"] = max(0.0, busy - timings.get("wait_s", 0.0))
+        out_conn.send(("end", timings))
+    except _Aborted:
+        try:
+            out_conn.send(("aborted",))
+        except (OSError, ValueError):
+            pass
+    except BaseException as exc:  # handed to the parent, which raises it
+        try:
+            out_conn.send(("error", exc))
+        except Exception:            # not picklable, or the parent is gone
+            try:
+                out_conn.send(("error", RuntimeError(f"the fit failed: {type(exc).__name__}: {exc}\n"
+                                                     f"{traceback.format_exc()}")))
+            except (OSError, ValueError):
+                pass
+    finally:
+        if not in_thread:
+            out_conn.close()
+
+
+def _heap_for_compute() -> None:
+    """Undo, in the child, the parent's fixed 1 MiB mmap threshold (``capture.run.stream._frames_off_heap``).
+
+    It keeps the parent's memory flat while it decodes frames of MBs, but the fit allocates tensors of
+    several MB at every step: mapped and unmapped each time, their pages faulted in anew, the fit ran
+    1.4x slower (7.2 -> 10 s for 300 frames, most of it system time). Fixed thresholds as large as
+    glibc's dynamic ones can grow to let the heap reuse them. No-op off glibc.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.mallopt(-3, 32 << 20)     # M_MMAP_THRESHOLD: glibc's largest dynamic value on 64-bit
+        libc.mallopt(-1, 64 << 20)     # M_TRIM_THRESHOLD: twice that, as glibc keeps them
+    except (OSError, AttributeError):
+        pass
+
+
+class FitWorker:
+    """:func:`capture.fit.stream.fit_take_stream` in a child process (or a thread), fed row by row.
+
+    Use::
+
+        worker = FitWorker(actor, template_points, camera, how)   # forks here: before other threads start
+        # in one thread:   worker.feed(rows)                       # rows: (points, weights, face_found)
+        # in another:      for ff, rows_read in worker.results(stop): ...
+        worker.close()                                            # always (also after an error)
+
+    ``rows_read`` is how many rows the fit had read when it gave ``ff`` (the live lag). After the take,
+    :attr:`timings` holds the fit's timings (``query_s``, ``pnp_s``, ``solve_s``, ``busy_s`` ...).
+    """
+
+    def __init__(self, actor, template_points, camera, how, causal: bool = False, threads: int = 1,
+                 in_process: bool | None = None):
+        if in_process is None:
+            in_process = "fork" in multiprocessing.get_all_start_methods()
+        self.in_process = bool(in_process)
+        ctx = multiprocessing.get_context("fork") if self.in_process else multiprocessing
+        self._rows_child, self._rows = ctx.Pipe(duplex=False)    # (receive end, send end)
+        self._out, self._out_child = ctx.Pipe(duplex=False)
+        self.timings: dict = {}
+        self._send_lock = threading.Lock()
+        self._sent_end = False
+        args = (self._rows_child, self._out_child, (self._rows, self._out), actor, template_points, camera, how,
+                causal, threads, not self.in_process)
+        if self.in_process:
+            self._proc = ctx.Process(target=_child_main, args=args, name="capture-fit", daemon=True)
+            self._proc.start()
+            self._rows_child.close()
+            self._out_child.close()
+        else:
+            self._proc = threading.Thread(target=_child_main, args=args, name="capture-fit", daemon=True)
+            self._proc.start()
+
+    def _send(self, item) -> None:
+        with self._send_lock:
+            if not self._sent_end:
+                self._rows.send(item)
+                if isinstance(item, str):
+                    self._sent_end = True
+
+    def feed(self, rows: Iterable) -> None:
+        """Send every row of ``rows``, then the end of the take; an error in ``rows`` aborts the fit (and is
+        raised here)."""
+        try:
+            for points, weights, found in rows:
+                self._send((points, weights, bool(found)))
+        except BaseException:
+            self.abort()
+            raise
+        self._send(END)
+
+    def abort(self) -> None:
+        """Tell the fit to stop after the window it is solving."""
+        try:
+            self._send(ABORT)
+        except (OSError, ValueError):
+            pass
+
+    def results(self, stop: threading.Event | None = None) -> Iterator[tuple]:
+        """Yield ``(FrameFit, rows_read)`` in frame order until the take ends; raises the fit's error,
+        or :class:`FitStopped` once ``stop`` is set."""
+        while True:
+            while not self._out.poll(0.1):
+                if stop is not None and stop.is_set():
+                    raise FitStopped
+                if not self._alive():
+                    if self._out.poll(0):
+                        break
+                    raise RuntimeError(f"the fit process ended unexpectedly (exit code {self._exitcode()}); "
+                                       f"if the machine ran out of memory, fit fewer frames at a time "
+                                       f"(--frames) or close other programs")
+            try:
+                msg = self._out.recv()
+            except EOFError:
+                raise RuntimeError(f"the fit process ended unexpectedly (exit code {self._exitcode()})") from None
+            if msg[0] == "fit":
+                yield msg[1], msg[2]
+            elif msg[0] == "end":
+                self.timings = msg[1]
+                return
+            elif msg[0] == "aborted":
+                raise FitStopped("the fit was stopped (its rows ended without the end of the take)")
+            else:
+                raise msg[1]
+
+    def _alive(self) -> bool:
+        return self._proc.is_alive()
+
+    def _exitcode(self):
+        return getattr(self._proc, "exitcode", None)
+
+    def close(self, timeout: float = JOIN_S) -> None:
+        """Stop the fit (after the window it is solving) and wait for it; kill it after ``timeout`` s."""
+        self.abort()
+        t_end = time.monotonic() + timeout
+        while self._alive() and time.monotonic() < t_end:
+            try:
+                while self._out.poll(0.05):   # drain: a child blocked on a full pipe cannot finish
+                    self._out.recv()
+            except (EOFError, OSError):
+                pass
+            self._proc.join(0.05)
+        if self.in_process:
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join()
+            for c in (self._rows, self._out):
+                c.close()

@@ -1,0 +1,147 @@
+"""The streamed fit in a process of its own (``capture.fit.process``): the same fits as in this process,
+bit for bit; its errors reach the parent with their type; a stopped or abandoned fit ends its process."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from tests.tiny_actor import synth_tiny_take, train_tiny_actor
+
+N_FRAMES = 10
+
+
+@pytest.fixture(scope="module")
+def take(tmp_path_factory):
+    import torch
+
+    from calib.camera_io import read_camera
+    from capture.actor.package import load_actor
+    from capture.detector import embedded_points, read_embedding
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("fitproc")
+    actor_dir = train_tiny_actor(root, iterations=60)
+    take_dir = synth_tiny_take(actor_dir, root / "take", frames=N_FRAMES, landmarks=100)
+    actor = load_actor(str(actor_dir))
+    tp = embedded_points(read_embedding(actor.path, "synthetic_dense_100", actor.template), actor.template)
+    with np.load(take_dir / "truth_landmarks.npz") as z:
+        pts = z["points_2d"].astype(np.float64) + np.random.default_rng(1).normal(0, 0.3, (N_FRAMES, 100, 2))
+    found = np.ones(N_FRAMES, bool)
+    found[3] = False
+    rows = [(pts[j], np.ones(100), bool(found[j])) for j in range(N_FRAMES)]
+    yield actor, tp, read_camera(take_dir / "camera.json"), rows
+    torch.set_num_threads(threads)
+
+
+def _run(worker, rows):
+    """Feed in a thread, as the pipelines do; returns the fits with the rows read when each came."""
+    feeder = threading.Thread(target=worker.feed, args=(iter(rows),), daemon=True)
+    feeder.start()
+    try:
+        return list(worker.results())
+    finally:
+        feeder.join(30)
+        worker.close()
+
+
+@pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
+def test_the_worker_gives_the_fits_of_this_process(take, in_process):
+    """Forked or threaded, the worker runs fit_take_stream on the rows it is sent: the same numbers, bit
+    for bit, in frame order, and rows_read counts the rows the fit had read (a window of 4 frames cannot be
+    solved before its frames arrived)."""
+    from capture.fit.process import FitWorker
+    from capture.fit.stream import fit_take_stream
+    from capture.fit.take import WindowedFit
+
+    actor, tp, cam, rows = take
+    how = WindowedFit("default", window=4, overlap=1)
+    ref = list(fit_take_stream(actor, iter(rows), tp, cam, how))
+    worker = FitWorker(actor, tp, cam, how, in_process=in_process)
+    got = _run(worker, rows)
+    assert worker.in_process is in_process
+    assert [int(f.frame) for f, _ in got] == [int(f.frame) for f in ref] == list(range(N_FRAMES))
+    for (a, n_read), b in zip(got, ref):
+        assert n_read >= min(N_FRAMES, int(a.frame) + 1)
+        assert a.status == b.status
+        for k in ("head_R", "head_t", "jaw_R", "jaw_t", "code", "coefficients_landmarks", "vertices", "landmarks_fit"):
+            np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=f"frame {a.frame} {k}")
+    assert worker.timings["busy_s"] > 0 and worker.timings["windows_solved"] >= 3
+    if in_process:
+        assert not worker._proc.is_alive()
+
+
+def test_an_error_of_the_fit_reaches_the_parent_with_its_type(take):
+    from capture.fit.process import FitWorker
+    from capture.fit.take import WindowedFit
+
+    actor, tp, cam, rows = take
+    bad = rows[:2] + [(rows[2][0][:50], rows[2][1][:50], True)] + rows[3:]     # a row of 50 landmarks, not 100
+    worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
+    with pytest.raises(ValueError, match=r"frame 2: landmarks should be \(100, 2\)"):
+        _run(worker, bad)
+    assert not worker._proc.is_alive()
+
+
+def test_a_failing_feed_stops_the_fit_process(take):
+    """The parent's rows fail (as the plausibility check does): feed raises that error, the fit process is
+    told to stop and ends, and the results end with FitStopped, not a wrong take."""
+    from capture.fit.process import FitStopped, FitWorker
+    from capture.fit.take import WindowedFit
+
+    actor, tp, cam, rows = take
+
+    def failing():
+        yield from rows[:5]
+        raise KeyError("no face")
+
+    worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
+    errors = []
+
+    def feed():
+        try:
+            worker.feed(failing())
+        except KeyError as exc:
+            errors.append(exc)
+
+    t = threading.Thread(target=feed, daemon=True)
+    t.start()
+    got = []
+    with pytest.raises(FitStopped):
+        for ff, _ in worker.results():
+            got.append(int(ff.frame))
+    t.join(10)
+    worker.close(timeout=30)
+    assert errors and not worker._proc.is_alive()
+    assert got == sorted(got) and len(got) < N_FRAMES
+
+
+def test_the_fit_process_ends_when_its_parent_is_gone(take):
+    """The parent's end of the pipe closes without the end of the take (the parent was killed): the child
+    reads the end of the pipe and exits instead of waiting for ever."""
+    from capture.fit.process import FitWorker
+    from capture.fit.take import WindowedFit
+
+    actor, tp, cam, rows = take
+    worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
+    worker._rows.send(rows[0])
+    worker._rows.close()               # what the kernel does to a killed parent's descriptors
+    worker._proc.join(30)
+    assert not worker._proc.is_alive() and worker._proc.exitcode == 0
+
+
+def test_a_stop_event_ends_the_results_and_close_ends_the_process(take):
+    from capture.fit.process import FitStopped, FitWorker
+    from capture.fit.take import WindowedFit
+
+    actor, tp, cam, rows = take
+    worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
+    stop = threading.Event()
+    stop.set()
+    with pytest.raises(FitStopped):
+        next(worker.results(stop))
+    worker.close(timeout=30)
+    assert not worker._proc.is_alive()
