@@ -137,7 +137,7 @@ def test_a_stop_event_ends_the_results_and_close_ends_the_process(take):
     from capture.fit.process import FitStopped, FitWorker
     from capture.fit.take import WindowedFit
 
-    actor, tp, cam, rows = take
+    actor, tp, cam, _ = take
     worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
     stop = threading.Event()
     stop.set()
