@@ -25,50 +25,16 @@ the trainer, per-frame parameters by the fitter.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
+from models.aim_config import AIMConfig  # noqa: F401  (its home before)
 from models.checks import check_shape
 from models.lbs import lbs_jaw
 from models.rotation import rot6d_to_matrix
 from models.siren import Siren
-
-
-@dataclass(frozen=True)
-class AIMConfig:
-    """Architecture and normalisation of an actor model (saved in the actor package)."""
-
-    n_expressions: int
-    """N - 1: number of non-neutral training shapes (columns of the expression basis)."""
-    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Centre of the template's bounding box (mm)."""
-    scale: float = 100.0
-    """Half the largest side of the template's bounding box (mm)."""
-    jaw_pivot: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Centre of jaw rotation (mm), near the temporomandibular joint."""
-    width: int = 256
-    depth: int = 3
-    first_omega_0: float = 30.0
-    hidden_omega_0: float = 1.0
-    bone_offset_mm: float = 10.0
-    thickness_mm: float = 10.0
-    expression_mm: float = 10.0
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "AIMConfig":
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"unknown AIMConfig fields: {sorted(unknown)}")
-        d = dict(d)
-        for key in ("center", "jaw_pivot"):
-            if key in d:
-                d[key] = tuple(float(v) for v in d[key])
-        return cls(**d)
 
 
 @dataclass

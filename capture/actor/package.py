@@ -26,18 +26,21 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-import torch
-import trimesh
-from safetensors.torch import load_file, save_file
 
 from capture.io.atomic import atomic_path, write_json
 from capture.io.errors import CaptureError
-from models.aim import AIMConfig, AnatomicalFaceModel
-from models.anatomy_edit import edits_from_state
+from models.aim_config import AIMConfig
+
+if TYPE_CHECKING:
+    import torch
+    import trimesh
+
+    from capture.export.rig import FaceRig
+    from models.aim import AnatomicalFaceModel
 
 FORMAT_VERSION = 1
 ACTOR_JSON = "actor.json"
@@ -129,17 +132,31 @@ def is_actor(path: Path) -> bool:
     return (path / ACTOR_JSON).is_file()
 
 
-@dataclass
-class Actor:
-    """A learned actor, loaded for use (the model is frozen and in eval mode)."""
+class MeshArrays(NamedTuple):
+    vertices: np.ndarray      # (V, 3) float64 mm
+    faces: np.ndarray         # (F, 3) int64
 
-    path: Path
-    metadata: dict
-    config: AIMConfig
-    model: AnatomicalFaceModel
-    jaw_rot6d: torch.Tensor   # (N-1, 6) learned jaw transforms of the training shapes
-    jaw_t: torch.Tensor       # (N-1, 3) mm
-    template: trimesh.Trimesh
+
+class Actor:
+    """A learned actor, loaded for use: its files checked, its model frozen and in eval mode.
+
+    The parts that need torch or trimesh are made on first use: ``model``, ``jaw_rot6d`` and ``jaw_t``
+    from the weights read (and checked) at load, ``template`` as a ``trimesh.Trimesh`` of
+    ``template_vertices`` (V, 3) mm and ``template_faces`` (F, 3). A process that needs only the arrays,
+    the metadata and the rig (``capture run``'s parent, whose fit runs in a process of its own, which
+    hands the rig back with :meth:`set_face_rig`) starts without importing either.
+    """
+
+    def __init__(self, path: Path, metadata: dict, config: AIMConfig, template_vertices: np.ndarray,
+                 template_faces: np.ndarray, weights: dict[str, np.ndarray], device="cpu"):
+        self.path = Path(path)
+        self.metadata = metadata
+        self.config = config
+        self.template_vertices = template_vertices
+        self.template_faces = template_faces
+        self.device = device
+        self._weights = weights
+        self._parts: dict = {}
 
     @property
     def name(self) -> str:
@@ -149,18 +166,87 @@ class Actor:
     def shape_names(self) -> list[str]:
         return list(self.metadata["shape_names"])
 
+    @property
+    def template_arrays(self) -> MeshArrays:
+        """The template as arrays (``.vertices``, ``.faces``), for readers of either; no trimesh."""
+        return MeshArrays(self.template_vertices, self.template_faces)
+
+    @property
+    def template(self) -> trimesh.Trimesh:
+        if "template" not in self._parts:
+            import trimesh
+
+            self._parts["template"] = trimesh.Trimesh(self.template_vertices, self.template_faces, process=False)
+        return self._parts["template"]
+
+    @property
+    def model(self) -> AnatomicalFaceModel:
+        if "model" not in self._parts:
+            self._build()
+        return self._parts["model"]
+
+    @property
+    def jaw_rot6d(self) -> torch.Tensor:
+        """(N-1, 6) the learned jaw transforms of the training shapes."""
+        if "model" not in self._parts:
+            self._build()
+        return self._parts["jaw_rot6d"]
+
+    @property
+    def jaw_t(self) -> torch.Tensor:
+        """(N-1, 3) mm."""
+        if "model" not in self._parts:
+            self._build()
+        return self._parts["jaw_t"]
+
+    def _build(self) -> None:
+        import torch
+
+        from models.aim import AnatomicalFaceModel
+        from models.anatomy_edit import edits_from_state
+
+        name, config = self.metadata.get("name", self.path.name), self.config
+        tensors = {k: torch.from_numpy(np.array(v)) for k, v in self._weights.items()}
+        try:
+            model = AnatomicalFaceModel(config)
+            state = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
+            model.thickness_edits.extend(edits_from_state(state))  # an edited actor's edits
+            model.load_state_dict(state)
+        except (RuntimeError, KeyError, ValueError, TypeError) as exc:
+            first = str(exc).replace("\n", " ").replace("\t", " ")[:160]
+            raise _bad(name, f"{self.path / WEIGHTS} does not match the model in actor.json (width "
+                             f"{config.width}): {first}") from None
+        model = model.to(self.device)
+        model.eval().requires_grad_(False)
+        self._parts.update(model=model, jaw_rot6d=tensors["jaw_rot6d"].to(self.device),
+                           jaw_t=tensors["jaw_t"].to(self.device))
+
     def at_template(self):
         """The frozen model's outputs (:class:`models.aim.Anatomy`, float32, on the model's device) at every
         template vertex, evaluated once per loaded actor: the fit's output points, the rig export and the
         report all need them, and each evaluation costs a forward pass of the five networks."""
-        cached = self.__dict__.get("_at_template")
+        cached = self._parts.get("at_template")
         if cached is None:
+            import torch
+
             device = next(iter(self.model.parameters())).device
-            pts = torch.as_tensor(np.asarray(self.template.vertices), dtype=torch.float32, device=device)
+            pts = torch.as_tensor(self.template_vertices, dtype=torch.float32, device=device)
             with torch.no_grad():
                 cached = self.model(pts)
-            self.__dict__["_at_template"] = cached
+            self._parts["at_template"] = cached
         return cached
+
+    def face_rig(self) -> FaceRig:
+        """The actor as a blend-shape rig (:meth:`capture.export.rig.FaceRig.from_actor`), made once."""
+        if "rig" not in self._parts:
+            from capture.export.rig import FaceRig
+
+            self._parts["rig"] = FaceRig.from_actor(self)
+        return self._parts["rig"]
+
+    def set_face_rig(self, rig: FaceRig) -> None:
+        """Adopt the rig another process made of this actor (its arrays are the same numbers)."""
+        self._parts["rig"] = rig
 
 
 def _bad(name: str, what: str, fix: str = "retrain the actor or restore its package from a backup") -> CaptureError:
@@ -212,11 +298,15 @@ def _metadata_at(path: Path, name: str) -> dict:
 
 
 def load_actor(name: str, device: str | torch.device = "cpu") -> Actor:
-    """Load actor ``name`` (see :func:`resolve_actor`, resolved once) with its frozen model on ``device``.
+    """Load actor ``name`` (see :func:`resolve_actor`, resolved once) for use on ``device``.
 
-    Every file of the package is checked: weights present, readable, finite and of the model's shapes;
-    a template with triangles, finite, of the model's vertex count and a face's size.
+    Every file of the package is checked: weights present, readable, finite and with jaw transforms of
+    the right shapes; a template with triangles, finite, of the model's vertex count and a face's size.
+    The networks are built from the weights on first use (:class:`Actor`), where a weights file of
+    another architecture than ``actor.json``'s is reported.
     """
+    from safetensors.numpy import load_file
+
     from capture.io.meshes import check_face_size
 
     path = resolve_actor(name)          # resolved once: everything below reads this folder
@@ -229,46 +319,59 @@ def load_actor(name: str, device: str | torch.device = "cpu") -> Actor:
     if not wpath.is_file():
         raise _bad(name, f"{wpath} is missing")
     try:
-        tensors = load_file(str(wpath), device="cpu")
+        tensors = load_file(str(wpath))
     except Exception as exc:  # safetensors raises its own error type for truncated or foreign files
         raise _bad(name, f"{wpath} is damaged or not a safetensors file ({str(exc).splitlines()[0][:80]})") from None
     for k in ("jaw_rot6d", "jaw_t"):
         if k not in tensors:
             raise _bad(name, f"{wpath} lacks '{k}'")
-    bad = [k for k, v in tensors.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    bad = [k for k, v in tensors.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
     if bad:
         raise _bad(name, f"{wpath} holds NaN or infinite values (in {bad[0]})")
     n_exp = len(meta["shape_names"]) - 1
     if tensors["jaw_rot6d"].shape != (n_exp, 6) or tensors["jaw_t"].shape != (n_exp, 3):
         raise _bad(name, f"{wpath} has jaw transforms of shape {tuple(tensors['jaw_rot6d'].shape)} for "
                          f"{n_exp} expressions")
-    try:
-        model = AnatomicalFaceModel(config)
-        state = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
-        model.thickness_edits.extend(edits_from_state(state))  # an edited actor's edits
-        model.load_state_dict(state)
-    except (RuntimeError, KeyError, ValueError, TypeError) as exc:
-        first = str(exc).replace("\n", " ").replace("\t", " ")[:160]
-        raise _bad(name, f"{wpath} does not match the model in actor.json (width {config.width}): "
-                         f"{first}") from None
-    model = model.to(device)
-    model.eval().requires_grad_(False)
     tpath = path / TEMPLATE
     if not tpath.is_file():
         raise _bad(name, f"{tpath} is missing")
-    try:
-        template = trimesh.load(tpath, process=False, maintain_order=True, force="mesh")
-    except Exception as exc:  # trimesh raises many types for corrupt files
-        raise _bad(name, f"{tpath} is not a readable mesh ({exc.__class__.__name__})") from None
-    if (not isinstance(template, trimesh.Trimesh) or len(template.faces) == 0
-            or not np.isfinite(np.asarray(template.vertices)).all()):
+    vertices, faces = _read_template(tpath, name)
+    if len(faces) == 0 or not np.isfinite(vertices).all():
         raise _bad(name, f"{tpath} has no triangles or non-finite vertices")
     nv = meta.get("n_vertices")
-    if isinstance(nv, int) and nv != len(template.vertices):
-        raise _bad(name, f"{tpath} has {len(template.vertices)} vertices but actor.json says {nv}")
-    check_face_size(template.vertices, "mm", f"actor '{name}': its template", flag="the actor's units")
-    return Actor(path=path, metadata=meta, config=config, model=model,
-                 jaw_rot6d=tensors["jaw_rot6d"].to(device), jaw_t=tensors["jaw_t"].to(device), template=template)
+    if isinstance(nv, int) and nv != len(vertices):
+        raise _bad(name, f"{tpath} has {len(vertices)} vertices but actor.json says {nv}")
+    check_face_size(vertices, "mm", f"actor '{name}': its template", flag="the actor's units")
+    return Actor(path, meta, config, vertices, faces, tensors, device=device)
+
+
+def _read_template(tpath: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(vertices (V, 3) float64, faces (F, 3) int64)`` of the template, in file order.
+
+    A triangle PLY (what :func:`save_actor` writes) is read with plyfile, which imports in milliseconds;
+    anything else (other formats, polygons) through trimesh, as it always was.
+    """
+    try:
+        from plyfile import PlyData
+
+        ply = PlyData.read(str(tpath), known_list_len={"face": {"vertex_indices": 3}})
+        v = ply["vertex"].data
+        vertices = np.stack([np.asarray(v[c], np.float64) for c in ("x", "y", "z")], 1)
+        faces = np.array(ply["face"].data["vertex_indices"], np.int64)      # a copy: the file is not kept open
+        if faces.ndim != 2 or faces.shape[1] != 3 or (len(faces) and (faces.min() < 0 or faces.max() >= len(vertices))):
+            raise ValueError("not triangles of these vertices")
+        return vertices, faces
+    except Exception:  # not a plain triangle PLY (or damaged): trimesh reads it or says why not
+        pass
+    import trimesh
+
+    try:
+        mesh = trimesh.load(tpath, process=False, maintain_order=True, force="mesh")
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise _bad(name, f"{tpath} is not a readable mesh ({exc.__class__.__name__})") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise _bad(name, f"{tpath} has no triangles or non-finite vertices")
+    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
 
 
 def list_actors(root: Path | None = None, bundled: bool = True) -> list[dict]:
@@ -316,6 +419,8 @@ def save_actor(path: Path, metadata: dict, model: AnatomicalFaceModel, jaw_rot6d
                jaw_t: torch.Tensor, template: trimesh.Trimesh, bones: dict[str, trimesh.Trimesh],
                constraints: dict[str, np.ndarray]) -> Path:
     """Write a finished actor package; ``actor.json`` goes last (it marks the package complete)."""
+    from safetensors.torch import save_file
+
     path.mkdir(parents=True, exist_ok=True)
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     tensors["jaw_rot6d"] = jaw_rot6d.detach().cpu().contiguous()

@@ -7,15 +7,17 @@ landmarks at a time through a pipe, with the same results (the child runs the sa
 numbers; its window cache is the same folder).
 
 The child is forked, so it starts at once with the parent's loaded actor (nothing is pickled but the
-rows and the fits). Fork it before the parent starts other threads (a lock held by another thread at
+rows, the fits and, at the end, the actor's rig). The parent's actor may not have built its networks
+(:class:`capture.actor.package.Actor` makes them on first use): then the child imports torch and
+builds them while the parent decodes and detects, and the parent never needs torch. Fork it before the parent starts other threads (a lock held by another thread at
 the fork would stay held in the child). Where fork is not available (Windows, or ``in_process=True``)
 the same code runs in a thread, through the same pipes.
 
 Protocol::
 
     parent -> child   (points (L, 2), weights (L,), face_found) per frame, then END (or ABORT)
-    child -> parent   ("fit", FrameFit, rows read so far) per frame, then ("end", timings),
-                      ("error", exception) or ("aborted",)
+    child -> parent   ("fit", FrameFit, rows read so far) per frame, then ("end", timings, the actor's
+                      FaceRig, which the parent adopts), ("error", exception) or ("aborted",)
 
 Signals: the child ignores SIGINT and SIGTERM, which the parent handles (Ctrl-C reaches the whole process
 group): the parent then sends ABORT and the child stops after the window it is solving (that window is
@@ -84,7 +86,7 @@ def _child_main(rows_conn, out_conn, parent_ends, actor, template_points, camera
             t_last = time.perf_counter()
         busy += time.perf_counter() - t_last
         timings["busy_s"] = max(0.0, busy - timings.get("wait_s", 0.0))
-        out_conn.send(("end", timings))
+        out_conn.send(("end", timings, actor.face_rig() if hasattr(actor, "face_rig") else None))
     except _Aborted:
         try:
             out_conn.send(("aborted",))
@@ -142,6 +144,7 @@ class FitWorker:
         if in_process is None:
             in_process = "fork" in multiprocessing.get_all_start_methods()
         self.in_process = bool(in_process)
+        self.actor = actor
         ctx = multiprocessing.get_context("fork") if self.in_process else multiprocessing
         self._rows_child, self._rows = ctx.Pipe(duplex=False)    # (receive end, send end)
         self._out, self._out_child = ctx.Pipe(duplex=False)
@@ -205,6 +208,8 @@ class FitWorker:
                 yield msg[1], msg[2]
             elif msg[0] == "end":
                 self.timings = msg[1]
+                if msg[2] is not None and self.in_process:   # the parent's actor need not evaluate its networks
+                    self.actor.set_face_rig(msg[2])
                 return
             elif msg[0] == "aborted":
                 raise FitStopped("the fit was stopped (its rows ended without the end of the take)")

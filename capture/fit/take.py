@@ -47,6 +47,7 @@ import torch
 
 from calib.camera import Camera
 from calib.projection import camera_tensors, project_points
+from capture.fit.records import FrameFit, WindowedFit  # noqa: F401  (their home before)
 from capture.io.atomic import atomic_path
 from capture.fit.init import PnPSettings, initial_head_poses, rigid_align
 from models.fit import (FIT3D_PRESETS, FIT_PRESETS, ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence,
@@ -72,44 +73,6 @@ class TakeLandmarks:
     weights: np.ndarray | None
     face_found: np.ndarray | None
     template_points: np.ndarray
-
-
-@dataclass(frozen=True)
-class WindowedFit:
-    """How a take is cut and solved: settings, windows, cache, device.
-
-    ``settings`` is a :class:`FitSettings` or a preset name of :data:`models.fit.FIT_PRESETS`;
-    ``window`` frames per window, ``overlap`` of them shared by consecutive windows; ``cache_dir`` keeps
-    solved windows for resume (None: nothing written); ``threads`` torch threads while solving (None:
-    leave torch's setting).
-    """
-
-    settings: FitSettings | str | None = "default"
-    window: int = 30
-    overlap: int = 6
-    cache_dir: str | Path | None = None
-    device: str = "cpu"
-    threads: int | None = None
-
-
-@dataclass
-class FrameFit:
-    """The fit of one frame. Lengths in mm, camera frame (OpenCV axes); ``x_cam = head_R @ x + head_t``."""
-
-    frame: int                         # position in the take
-    head_R: np.ndarray                 # (3, 3) head (template) frame -> camera
-    head_t: np.ndarray                 # (3,) mm
-    jaw_R: np.ndarray                  # (3, 3) about the actor's jaw pivot (head frame)
-    jaw_t: np.ndarray                  # (3,) mm
-    code: np.ndarray                   # (f,) frame code z_j
-    coefficients_landmarks: np.ndarray  # (L, E) w_j(c) at the fit points (landmarks; fit3d: sampled vertices)
-    vertices: np.ndarray               # (V, 3) float32 mm, camera frame, full template topology
-    landmarks_fit: np.ndarray          # (L, 2) px reprojected model landmarks ((0, 2) for fit3d)
-    reprojection_rms_px: float         # over the frame's valid landmarks; NaN when it has none (bridged)
-    status: str                        # "fitted" | "bridged"
-    error3d_mm: float = float("nan")   # fit3d: mean distance to the given mesh over all vertices
-    window_start: int = 0              # first frame of the (later) window this frame came from
-    coefficients_base: np.ndarray | None = None  # (E,) the per-frame base: w_j(c) = base + F_W(z_j, c)
 
 
 def resolve_settings(settings: FitSettings | str | None, kind: str = "2d") -> FitSettings:
@@ -477,10 +440,16 @@ def _query(actor, points: np.ndarray, device) -> ActorAtPoints:
                                getattr(actor, "jaw_rot6d", None), getattr(actor, "jaw_t", None))
 
 
+def template_vertices(actor) -> np.ndarray:
+    """``(V, 3)`` float64 mm: the actor's template vertices (its arrays, without building a trimesh)."""
+    v = getattr(actor, "template_vertices", None)
+    return np.asarray(actor.template.vertices if v is None else v, np.float64)
+
+
 def query_template(actor, device) -> ActorAtPoints:
     """The actor at every template vertex: its cached evaluation (``Actor.at_template``) when it has one
     on ``device``."""
-    tv = np.asarray(actor.template.vertices)
+    tv = template_vertices(actor)
     cached = getattr(actor, "at_template", None)
     if cached is None or next(iter(actor.model.parameters())).device != torch.device(device):
         return _query(actor, tv, device)
@@ -564,7 +533,7 @@ def fit_meshes(actor, meshes: np.ndarray | Iterable[np.ndarray], how: WindowedFi
     s = resolve_settings(how.settings, "3d")
     window, overlap, device = how.window, how.overlap, how.device
     _check_window(window, overlap)
-    tv = np.asarray(actor.template.vertices, np.float64)
+    tv = template_vertices(actor)
     if n_samples is None:
         n_samples = len(tv) if s.field_centres > 0 and s.field_iterations > 0 else 1000
     idx = farthest_point_sample(tv, n_samples)

@@ -8,11 +8,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 
 from capture.io.errors import CaptureError
+
+if TYPE_CHECKING:
+    import trimesh
 
 MESH_SUFFIXES = (".obj", ".ply")
 UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
@@ -49,6 +52,8 @@ def units_scale(units: str) -> float:
 
 def load_mesh(path: str | Path, scale: float = 1.0, what: str = "mesh") -> trimesh.Trimesh:
     """Load one triangle mesh keeping vertex order; multiply coordinates by ``scale`` (to mm)."""
+    import trimesh
+
     path = Path(path)
     if not path.is_file():
         raise CaptureError(f"{what} file not found: {path}")
@@ -77,6 +82,8 @@ class ShapeSet:
 
     @property
     def neutral(self) -> trimesh.Trimesh:
+        import trimesh
+
         return trimesh.Trimesh(self.vertices[0], self.faces, process=False)
 
 

@@ -179,7 +179,7 @@ def resolve_fit_settings(preset: str, seed: int, iterations: int | None = None, 
     ``kind`` ``2d`` (landmark fits, :data:`models.fit.FIT_PRESETS`) or ``3d`` (mesh fits, ``FIT3D_PRESETS``)."""
     from dataclasses import replace
 
-    from models.fit import FIT3D_PRESETS, FIT_PRESETS
+    from models.fit_settings import FIT3D_PRESETS, FIT_PRESETS
 
     presets = FIT3D_PRESETS if kind == "3d" else FIT_PRESETS
     if preset not in presets:
@@ -194,6 +194,8 @@ def resolve_fit_settings(preset: str, seed: int, iterations: int | None = None, 
 
 
 def check_device(device: str) -> None:
+    if device == "cpu":      # without importing torch
+        return
     import torch
 
     try:
@@ -235,8 +237,8 @@ def resolve_inputs(cfg: RunConfig) -> RunInputs:
         raise CaptureError(f"actor '{actor.name}' has no landmark embedding for detector '{detector.name}' "
                            f"({emb_file} is missing); make one with 'capture actor embed {cfg.actor} --detector "
                            f"{det_path} --vertices/--triangles/--points/--mesh ...' (docs/byo_detector.md)")
-    emb = read_embedding(actor.path, detector.name, actor.template, detector.count)
-    points = embedded_points(emb, actor.template)
+    emb = read_embedding(actor.path, detector.name, actor.template_arrays, detector.count)
+    points = embedded_points(emb, actor.template_arrays)
     out = Path(cfg.out) if cfg.out is not None else Path("runs") / Path(cfg.video).stem
     notes = [camera.note]
     from capture.actor.package import is_bundled

@@ -186,13 +186,13 @@ def run_live(cfg: LiveConfig, say: Callable[[str], None] | None = None) -> dict:
         if not embedding_path(actor.path, det.name).is_file():
             raise CaptureError(f"actor '{actor.name}' has no landmark embedding for detector '{det.name}' "
                                f"({embedding_path(actor.path, det.name)} is missing)")
-        emb = read_embedding(actor.path, det.name, actor.template, det.count)
-        points = embedded_points(emb, actor.template)
+        emb = read_embedding(actor.path, det.name, actor.template_arrays, det.count)
+        points = embedded_points(emb, actor.template_arrays)
         camera = resolve_camera(cfg.camera, w, h)
         stem = Path(str(cfg.source)).stem if is_file else str(cfg.source).replace("/", "_").replace(":", "_")
         out = Path(cfg.out) if cfg.out is not None else Path("runs") / f"live_{stem}"
         out.mkdir(parents=True, exist_ok=True)
-        ctx = ExportContext(faces=np.asarray(actor.template.faces), fps=fps, image_size=(w, h),
+        ctx = ExportContext(faces=actor.template_faces, fps=fps, image_size=(w, h),
                             camera=camera.camera, options=ExportOptions(overwrite=True),
                             source=f"capture live {label}, actor {actor.name}")
         return _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, settings, window, overlap, out,
@@ -208,7 +208,7 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
     from capture.detector.runtime import TrackState
     from capture.export import open_exporters
     from capture.fit.process import FitStopped, FitWorker
-    from capture.fit.take import WindowedFit
+    from capture.fit.records import WindowedFit
     from capture.io.atomic import write_json
     from capture.run.take import Detection
 

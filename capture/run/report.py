@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import platform
+import sys
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -23,10 +24,15 @@ def versions() -> dict:
     import capture
 
     out = {"python": platform.python_version(), "capture": capture.__version__}
+    from importlib.metadata import PackageNotFoundError, version
+
     for mod, key in (("torch", "torch"), ("onnxruntime", "onnxruntime"), ("cv2", "opencv"), ("numpy", "numpy")):
         try:
-            out[key] = __import__(mod).__version__
-        except Exception:  # pragma: no cover - optional
+            if mod == "torch" and mod not in sys.modules:
+                out[key] = version("torch")     # without importing it: a run's parent process need not
+            else:
+                out[key] = __import__(mod).__version__
+        except (ImportError, PackageNotFoundError, AttributeError):  # pragma: no cover - optional
             out[key] = None
     return out
 

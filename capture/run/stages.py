@@ -91,7 +91,7 @@ def fit_dir_for(out_dir: Path, key: dict) -> Path:
 
 
 def _frame_fit_class():
-    from capture.fit.take import FrameFit
+    from capture.fit.records import FrameFit
 
     return FrameFit
 
@@ -172,7 +172,7 @@ def take_landmarks(inputs, track):
 
 def windowed_fit(inputs, cache: Path | None):
     """The run's fit settings, windows, device and threads (:class:`capture.fit.take.WindowedFit`)."""
-    from capture.fit.take import WindowedFit
+    from capture.fit.records import WindowedFit
 
     cfg = inputs.config
     return WindowedFit(inputs.fit_settings, cfg.window, cfg.overlap, cache, cfg.device, cfg.threads)

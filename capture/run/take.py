@@ -146,7 +146,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
     log: list[dict] = []
     stage = "detect"
     options = export_options(cfg)
-    ctx = ExportContext(faces=np.asarray(inputs.actor.template.faces), fps=info.fps,
+    ctx = ExportContext(faces=inputs.actor.template_faces, fps=info.fps,
                         image_size=(info.width, info.height), camera=cam, frame_count=0,
                         options=options, source=f"capture run {Path(cfg.video).name}, "
                                                 f"actor {inputs.actor.name}",
@@ -279,13 +279,11 @@ def rig_and_features(actor, formats) -> dict:
     if "curves" not in formats and "overlay" not in formats:
         return {}
     from capture.export.features import face_features
-    from capture.export.rig import FaceRig
 
-    rig = FaceRig.from_actor(actor)
+    rig = actor.face_rig()
     out = {"rig": rig} if "curves" in formats else {}
     if "overlay" in formats:
-        out["features"] = face_features(np.asarray(actor.template.faces), np.asarray(actor.template.vertices),
-                                        rig.expressions, rig.names)
+        out["features"] = face_features(actor.template_faces, actor.template_vertices, rig.expressions, rig.names)
     return out
 
 
@@ -296,16 +294,15 @@ def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict],
     from capture.export.features import face_features
     from capture.export.overlay_draw import FrameRenderer, Topology
     from capture.export.report_html import take_series, thumbnails, worst_frames, write_report_html
-    from capture.export.rig import FaceRig
 
-    rig = FaceRig.from_actor(actor)
+    rig = actor.face_rig()
     errors = {int(r["frame"]): r.get(error_key) for r in rows}
     series = take_series(iter_fits(fit_dir), fps, rig.names, errors, unit, detections)
     thumbs = []
     if video is not None and camera is not None and image_size is not None:
         worst = worst_frames(series)
-        faces = np.asarray(actor.template.faces)
-        feats = face_features(faces, np.asarray(actor.template.vertices), rig.expressions, rig.names)
+        faces = actor.template_faces
+        feats = face_features(faces, actor.template_vertices, rig.expressions, rig.names)
         renderer = FrameRenderer(Topology.of(faces, feats), camera, image_size, fps,
                                  ("mesh", "contours", "landmarks"))   # the caption says frame and error
         want = set(worst)
