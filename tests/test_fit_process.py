@@ -33,7 +33,7 @@ def take(tmp_path_factory):
     found = np.ones(N_FRAMES, bool)
     found[3] = False
     rows = [(pts[j], np.ones(100), bool(found[j])) for j in range(N_FRAMES)]
-    yield actor, tp, read_camera(take_dir / "camera.json"), rows
+    yield actor, tp, read_camera(take_dir / "camera.json"), rows, take_dir
     torch.set_num_threads(threads)
 
 
@@ -57,7 +57,7 @@ def test_the_worker_gives_the_fits_of_this_process(take, in_process):
     from capture.fit.stream import fit_take_stream
     from capture.fit.take import WindowedFit
 
-    actor, tp, cam, rows = take
+    actor, tp, cam, rows, _ = take
     how = WindowedFit("default", window=4, overlap=1)
     ref = list(fit_take_stream(actor, iter(rows), tp, cam, how))
     worker = FitWorker(actor, tp, cam, how, in_process=in_process)
@@ -78,7 +78,7 @@ def test_an_error_of_the_fit_reaches_the_parent_with_its_type(take):
     from capture.fit.process import FitWorker
     from capture.fit.take import WindowedFit
 
-    actor, tp, cam, rows = take
+    actor, tp, cam, rows, _ = take
     bad = rows[:2] + [(rows[2][0][:50], rows[2][1][:50], True)] + rows[3:]     # a row of 50 landmarks, not 100
     worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
     with pytest.raises(ValueError, match=r"frame 2: landmarks should be \(100, 2\)"):
@@ -92,7 +92,7 @@ def test_a_failing_feed_stops_the_fit_process(take):
     from capture.fit.process import FitStopped, FitWorker
     from capture.fit.take import WindowedFit
 
-    actor, tp, cam, rows = take
+    actor, tp, cam, rows, _ = take
 
     def failing():
         yield from rows[:5]
@@ -125,7 +125,7 @@ def test_the_fit_process_ends_when_its_parent_is_gone(take):
     from capture.fit.process import FitWorker
     from capture.fit.take import WindowedFit
 
-    actor, tp, cam, rows = take
+    actor, tp, cam, rows, _ = take
     worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
     worker._rows.send(rows[0])
     worker._rows.close()               # what the kernel does to a killed parent's descriptors
@@ -137,7 +137,7 @@ def test_a_stop_event_ends_the_results_and_close_ends_the_process(take):
     from capture.fit.process import FitStopped, FitWorker
     from capture.fit.take import WindowedFit
 
-    actor, tp, cam, _ = take
+    actor, tp, cam, _, _ = take
     worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
     stop = threading.Event()
     stop.set()
@@ -145,3 +145,45 @@ def test_a_stop_event_ends_the_results_and_close_ends_the_process(take):
         next(worker.results(stop))
     worker.close(timeout=30)
     assert not worker._proc.is_alive()
+
+
+def test_capture_run_loads_neither_torch_nor_trimesh_outside_its_fit_process(take, tmp_path):
+    """The parent of ``capture run`` checks the actor (safetensors' numpy reader, plyfile), decodes, detects,
+    exports and reports; only the forked fit process builds the networks. Were torch imported in the
+    parent, every run would start 2 s later. The run must still be whole: meshes, report and rig."""
+    import base64
+    import json
+    import os
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    actor, _, _, _, take_dir = take
+    out = tmp_path / "run"
+    code = (
+        "import builtins, os, sys\n"
+        "parent = os.getpid(); seen = []\n"
+        "real = builtins.__import__\n"
+        "def spy(name, *a, **k):\n"
+        "    if os.getpid() == parent and name.split('.')[0] in ('torch', 'trimesh') and name not in seen:\n"
+        "        seen.append(name)\n"
+        "    return real(name, *a, **k)\n"
+        "builtins.__import__ = spy\n"
+        "from capture.cli import main\n"
+        "code = main(sys.argv[1:])\n"
+        "print('PARENT_IMPORTED=' + ','.join(seen))\n"
+        "sys.exit(code)\n")
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, "-c", code, "run", str(take_dir / "take.mp4"), "--actor", str(actor.path),
+                        "--camera", str(take_dir / "camera.json"), "--out", str(out), "--formats", "npz,obj",
+                        "--no-progress"], cwd=root, capture_output=True, text=True,
+                       env={**os.environ, "PYTHONPATH": str(root)}, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "PARENT_IMPORTED=\n" in r.stdout, r.stdout
+    report = json.loads((out / "report.json").read_text())
+    fit = next(s for s in report["stages"] if s["stage"] == "fit")
+    assert fit["fit_process"] is True and report["frames"]["fitted"] == N_FRAMES
+    assert len(list((out / "meshes").glob("*.obj"))) == N_FRAMES
+    svgs = re.findall(r"src='data:image/svg\+xml;base64,([^']+)'", (out / "report.html").read_text())
+    assert any(b"jawOpen" in base64.b64decode(b) for b in svgs)    # the rig the fit process handed back
