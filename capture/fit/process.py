@@ -16,7 +16,7 @@ the same code runs in a thread, through the same pipes.
 Protocol::
 
     parent -> child   (points (L, 2), weights (L,), face_found) per frame, then END (or ABORT)
-    child -> parent   ("fit", FrameFit, rows read so far) per frame, then ("end", timings, the actor's
+    child -> parent   ("ready",) once the actor's networks are built, ("fit", FrameFit, rows read so far) per frame, then ("end", timings, the actor's
                       FaceRig, which the parent adopts), ("error", exception) or ("aborted",)
 
 Signals: the child ignores SIGINT and SIGTERM, which the parent handles (Ctrl-C reaches the whole process
@@ -78,6 +78,9 @@ def _child_main(rows_conn, out_conn, parent_ends, actor, template_points, camera
 
     timings: dict = {}
     try:
+        if hasattr(actor, "at_template"):     # build the networks and evaluate them now (see FitWorker.wait_ready)
+            actor.at_template()
+        out_conn.send(("ready",))
         busy, t_last = 0.0, time.perf_counter()
         for ff in fit_take_stream(actor, rows(), template_points, camera, how, causal=causal, timings=timings):
             now = time.perf_counter()
@@ -206,6 +209,8 @@ class FitWorker:
                 raise RuntimeError(f"the fit process ended unexpectedly (exit code {self._exitcode()})") from None
             if msg[0] == "fit":
                 yield msg[1], msg[2]
+            elif msg[0] == "ready":
+                continue
             elif msg[0] == "end":
                 self.timings = msg[1]
                 if msg[2] is not None and self.in_process:   # the parent's actor need not evaluate its networks
@@ -215,6 +220,21 @@ class FitWorker:
                 raise FitStopped("the fit was stopped (its rows ended without the end of the take)")
             else:
                 raise msg[1]
+
+    def wait_ready(self) -> None:
+        """Wait until the fit has built the actor's networks (``capture live``: before the source plays, so
+        that no frame is dropped while torch is imported); raises the fit's error."""
+        while True:
+            if not self._out.poll(0.1):
+                if not self._alive() and not self._out.poll(0):
+                    raise RuntimeError(f"the fit process ended unexpectedly (exit code {self._exitcode()})")
+                continue
+            msg = self._out.recv()
+            if msg[0] == "ready":
+                return
+            if msg[0] == "error":
+                raise msg[1]
+            raise RuntimeError(f"the fit process said {msg[0]!r} before it was ready")
 
     def _alive(self) -> bool:
         return self._proc.is_alive()

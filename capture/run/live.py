@@ -305,6 +305,8 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
     # the fit's process is forked before any thread of this pipeline starts
     worker = FitWorker(actor, points, camera.camera, how, causal=True, threads=cfg.threads)
     try:
+        worker.wait_ready()        # the networks are built before the source plays: no frame dropped for that
+        t_start = time.perf_counter()
         with open_exporters(cfg.formats, out, ctx) as writers:
             pl.start("capture", capture, clocks["capture"])
             pl.start("detect", detect, clocks["detect"])
