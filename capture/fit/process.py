@@ -89,6 +89,10 @@ def _child_main(rows_conn, out_conn, parent_ends, actor, template_points, camera
             t_last = time.perf_counter()
         busy += time.perf_counter() - t_last
         timings["busy_s"] = max(0.0, busy - timings.get("wait_s", 0.0))
+        if not in_thread:
+            import resource
+
+            timings["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         out_conn.send(("end", timings, actor.face_rig() if hasattr(actor, "face_rig") else None))
     except _Aborted:
         try:

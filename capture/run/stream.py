@@ -436,7 +436,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         {"stage": "fit", "status": "done", "seconds": c["fit"].busy, "finished_after_s": c["fit"].finished,
          "frames": len(fx.get("frames", [])), "fit_dir": str(final), "streamed": True,
          "fit_process": bool(fx.get("process")),
-         **{k: fx[k] for k in ("query_s", "pnp_s", "solve_s", "outputs_s", "windows_solved", "windows_cached")
+         **{k: fx[k] for k in ("query_s", "pnp_s", "solve_s", "outputs_s", "windows_solved", "windows_cached",
+                                    "peak_rss_mb")
             if k in fx}},
         {"stage": "export", "status": "done", "seconds": c["export"].busy, "finished_after_s": wall,
          "files": len(rel), "streamed": True},
