@@ -265,6 +265,7 @@ def _measure(args, work: Path) -> dict:
             rep = json.loads((out / "report.json").read_text())
             rows.setdefault(name, []).append({"wall_s": res["wall_s"], "frames": rep["frames"]["requested"],
                                               "peak_rss_mb": res["peak_rss_mb"],
+                                              "fit_process_peak_rss_mb": _fit_peak(rep),
                                               "inner_s": rep["seconds_total"], "start_s": res["watch_s"],
                                               "stages": {st["stage"]: round(st["seconds"], 2) for st in rep["stages"]}})
             shutil.rmtree(out, ignore_errors=True)
@@ -297,6 +298,7 @@ def _measure(args, work: Path) -> dict:
         "two_over_one_core": med("run 1 core") / med("run 2 cores"),
         "run_start_s": med("run 2 cores", "start_s"), "help_s": med("capture --help"),
         "run_peak_rss_mb": max(x["peak_rss_mb"] for x in rows["run 2 cores"]),
+        "fit_process_peak_rss_mb": max((x["fit_process_peak_rss_mb"] or 0.0) for x in rows["run 2 cores"]),
     }
     if "live" in rows:
         summary.update(live_fps=med("live", "fps"), live_dropped=[x["dropped"] for x in rows["live"]],
@@ -315,6 +317,11 @@ def _measure(args, work: Path) -> dict:
     return {"summary": summary, "rows": rows}
 
 
+def _fit_peak(report: dict) -> float | None:
+    """Peak RSS (MB) of the run's fit process, from its report (None when the fit ran in the run's process)."""
+    return next((st.get("peak_rss_mb") for st in report["stages"] if st["stage"] == "fit"), None)
+
+
 def _memory(s: dict, work: Path) -> dict:
     rows = []
     for repeat in (1, 4):
@@ -325,8 +332,10 @@ def _memory(s: dict, work: Path) -> dict:
                       str(s["camera"]), "--detector", str(s["detector"]), "--formats", "obj,usd,npz", "--out",
                       str(out), "--no-progress", "--overwrite"], None)
         rep = json.loads((out / "report.json").read_text())
-        rows.append({"frames": rep["frames"]["requested"], "peak_rss_mb": res["peak_rss_mb"], "wall_s": res["wall_s"]})
-        print(f"  1920x1080, {rows[-1]['frames']} frames, obj+usd+npz: peak RSS {res['peak_rss_mb']:.0f} MB, "
+        rows.append({"frames": rep["frames"]["requested"], "peak_rss_mb": res["peak_rss_mb"], "wall_s": res["wall_s"],
+                     "fit_process_peak_rss_mb": _fit_peak(rep)})
+        print(f"  1920x1080, {rows[-1]['frames']} frames, obj+usd+npz: peak RSS {res['peak_rss_mb']:.0f} MB (the "
+              f"larger of the run's process and its fit process; the fit process alone {_fit_peak(rep) or 0:.0f} MB), "
               f"{res['wall_s']:.1f} s (load average {os.getloadavg()[0]:.1f})")
         shutil.rmtree(out, ignore_errors=True)
     return {"memory": rows}

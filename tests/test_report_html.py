@@ -123,3 +123,22 @@ def test_batch_report_writes_the_shoot_page(tmp_path):
     write_batch_report(tmp_path, report)
     assert (tmp_path / "batch_report.html").read_text().startswith("<!doctype html>")
     assert Path(tmp_path / "batch_report.json").is_file()
+
+
+def test_figures_drawn_in_their_own_process_are_the_same_bytes():
+    """FigureProcess draws report_html.figures in a spawned process (it imports matplotlib while a take
+    runs): the same SVG bytes as drawn here (no time stamp in them), and drawn here when the process is
+    gone."""
+    from capture.export.report_figures import FigureProcess
+
+    fits, dets = make_take()
+    s = take_series(iter(fits), 25.0, ("jawOpen", "smile"), {10 + j: 0.1 * j for j in range(12)}, "px", dets)
+    here = figures(s)
+    assert figures(s) == here                      # deterministic, or the comparison below means nothing
+    with FigureProcess() as fp:
+        fp.submit(s)
+        assert fp.result() == here
+        fp._proc.kill()
+        fp._proc.join()
+        fp.submit(s)
+        assert fp.result() == here                 # the process is gone: drawn here

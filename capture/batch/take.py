@@ -224,8 +224,8 @@ def guarded(cfg: RunConfig, name: str, attempt: int, threads: int, work: Callabl
 
     from capture.run.progress import progress_listener
 
-    # a take is a task with a budget of `threads` CPUs: its fit stays in the take's process
-    cfg = dataclasses.replace(cfg, threads=int(threads), progress=False, fit_process=False)
+    # a take is a task with a budget of `threads` CPUs: its fit and report stay in the take's process
+    cfg = dataclasses.replace(cfg, threads=int(threads), progress=False, side_processes=False)
     out = Path(cfg.out)
     t0, c0 = time.perf_counter(), time.process_time()
     node = node_name()

@@ -131,7 +131,7 @@ def _svg(fig) -> str:
 
     buf = io.BytesIO()
     with matplotlib.rc_context({"svg.fonttype": "none", "svg.hashsalt": "capture"}):   # same take, same bytes
-        fig.savefig(buf, format="svg")
+        fig.savefig(buf, format="svg", metadata={"Date": None})       # no time stamp: same take, same bytes
     plt.close(fig)
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
@@ -349,11 +349,14 @@ def render_html(report: dict, s: TakeSeries, figs: list[tuple[str, str]], thumbs
     return "\n".join(parts)
 
 
-def write_report_html(out_dir: Path, report: dict, series: TakeSeries, thumbs: list[tuple[int, str]]) -> Path:
-    """Write ``out_dir/report.html`` atomically; returns its path."""
+def write_report_html(out_dir: Path, report: dict, series: TakeSeries, thumbs: list[tuple[int, str]],
+                      figs: list[tuple[str, str]] | None = None) -> Path:
+    """Write ``out_dir/report.html`` atomically (``figs``: :func:`figures` of ``series``, drawn here when
+    None); returns its path."""
     from capture.io.atomic import write_text
 
-    return write_text(Path(out_dir) / REPORT_HTML, render_html(report, series, figures(series), thumbs))
+    figs = figures(series) if figs is None else figs
+    return write_text(Path(out_dir) / REPORT_HTML, render_html(report, series, figs, thumbs))
 
 
 # -------------------------------------------------------------------------------------- a whole shoot

@@ -43,8 +43,9 @@ class RunConfig:
     threads: int = 1                    # torch and onnxruntime threads
     segments: tuple | None = None       # capture batch: the fit is stitched from these (start, end) segments
     overlay: tuple[str, ...] = DEFAULT_OVERLAY  # overlay.mp4 layers (--overlay), see capture.export.base
-    fit_process: bool = True            # the streamed fit in a forked process of its own (capture.fit.process);
-                                        # capture batch turns it off: a take there is a Ray task with a CPU budget
+    side_processes: bool = True         # the streamed fit (capture.fit.process) and the report's figures
+                                        # (capture.export.report_figures) in processes of their own; capture
+                                        # batch turns it off: a take there is a Ray task with a CPU budget
 
     def to_dict(self) -> dict:
         d = asdict(self)

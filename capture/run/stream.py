@@ -9,7 +9,7 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
     fit process     capture.fit.stream.fit_take_stream: each window solved as soon as      -> FrameFit per frame
                     its frames (and the initial poses they depend on) are there
                     (capture.fit.process: forked, so it has the loaded actor and a core of its own;
-                    a thread where fork is not available or with ``RunConfig.fit_process`` off)
+                    a thread where fork is not available or with ``RunConfig.side_processes`` off)
     fit thread      receives the fits, writes the fit's chunks
     main thread     the exporters (and a second VideoReader when the overlay needs images) -> files;
                     the progress bar ("fit", as capture batch follows it) counts the frames written
@@ -365,7 +365,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     want_images = any(EXPORTERS[f].needs_image for f in formats)
     # the fit's process is forked before any thread of this run starts
     worker = FitWorker(inputs.actor, inputs.landmark_points, inputs.camera.camera, how, threads=cfg.threads,
-                       in_process=None if cfg.fit_process else False)
+                       in_process=None if cfg.side_processes else False)
     try:
         with open_exporters(formats, out, ctx) as writers, StageProgress("fit", n_frames, progress) as bar:
             reader = VideoReader(cfg.video) if want_images else None

@@ -18,6 +18,7 @@ Output folder (``runs/<video stem>`` by default)::
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -126,12 +127,18 @@ def run_take(cfg: RunConfig) -> dict:
     fingerprints = {"video": inputs.video_id, "actor_weights_sha256": inputs.actor_weights_sha256,
                     "embedding_sha256": inputs.embedding_sha256, "detector": det.identity(),
                     "camera": camera_to_dict(cam)}
-    with open_run_dir(out, inputs.video_id, label, cfg.overwrite) as folder:
-        report = _run_in(folder, cfg, inputs, label, settings, fingerprints, t_start)
+    with open_run_dir(out, inputs.video_id, label, cfg.overwrite) as folder, contextlib.ExitStack() as stack:
+        figures = None
+        if cfg.side_processes:     # imports matplotlib while the take runs (capture.export.report_figures)
+            from capture.export.report_figures import FigureProcess
+
+            figures = stack.enter_context(FigureProcess())
+        report = _run_in(folder, cfg, inputs, label, settings, fingerprints, t_start, figures)
     return report
 
 
-def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerprints: dict, t_start: float) -> dict:
+def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerprints: dict, t_start: float,
+            figure_process=None) -> dict:
     """The stages and the report of :func:`run_take`, built in ``folder.work`` and committed to ``folder.out``."""
     from capture.detector import LandmarkTrack
     from capture.export import ExportContext
@@ -231,7 +238,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
     implausible = check_head_depths(fit_dir, rows)
     finish_report(report, rows, "reprojection_rms_px", out)
     html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
-                video=Path(cfg.video), camera=cam, image_size=(info.width, info.height))
+                video=Path(cfg.video), camera=cam, image_size=(info.width, info.height), figure_process=figure_process)
     check_complete(requested, frames)
     if implausible:
         raise CaptureError(implausible)
@@ -289,8 +296,11 @@ def rig_and_features(actor, formats) -> dict:
 
 def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict], error_key: str, unit: str,
                 fps: float, detections: dict | None = None, video: Path | None = None, camera=None,
-                image_size: tuple[int, int] | None = None) -> Path:
-    """``OUT/report.html`` (:mod:`capture.export.report_html`): the take's plots and its worst frames."""
+                image_size: tuple[int, int] | None = None, figure_process=None) -> Path:
+    """``OUT/report.html`` (:mod:`capture.export.report_html`): the take's plots and its worst frames.
+
+    ``figure_process`` (:class:`capture.export.report_figures.FigureProcess`) draws the plots while the
+    thumbnails are drawn here; None: both here."""
     from capture.export.features import face_features
     from capture.export.overlay_draw import FrameRenderer, Topology
     from capture.export.report_html import take_series, thumbnails, worst_frames, write_report_html
@@ -298,6 +308,8 @@ def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict],
     rig = actor.face_rig()
     errors = {int(r["frame"]): r.get(error_key) for r in rows}
     series = take_series(iter_fits(fit_dir), fps, rig.names, errors, unit, detections)
+    if figure_process is not None:
+        figure_process.submit(series)
     thumbs = []
     if video is not None and camera is not None and image_size is not None:
         worst = worst_frames(series)
@@ -308,7 +320,8 @@ def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict],
         want = set(worst)
         fits = {int(f.frame): f for f in iter_fits(fit_dir) if int(f.frame) in want}
         thumbs = thumbnails(video, worst, fits, detections or {}, renderer)
-    return write_report_html(out, report, series, thumbs)
+    figs = figure_process.result() if figure_process is not None else None
+    return write_report_html(out, report, series, thumbs, figs)
 
 
 def fits_key(out: Path, inputs, track) -> str:

@@ -1,0 +1,94 @@
+"""The report's figures drawn in a process that imported matplotlib while the take was running.
+
+Importing matplotlib and pyplot costs 0.5-0.8 s, and drawing the five figures of ``report.html``
+another 0.5-0.7 s; in a run they came after the take, one after the other, beside the worst-frame
+thumbnails. :class:`FigureProcess` spawns one process when the run starts (a fresh interpreter, not a
+fork of the run), which imports matplotlib while the take is decoded, detected and fitted, and draws
+:func:`capture.export.report_html.figures` of the take's series when asked, while the run's process
+draws the thumbnails. The figures are the same bytes as drawn in the run's process (the same function
+on the same series; ``svg.hashsalt`` fixes the SVG ids). If the process is gone or fails, they are drawn
+in the run's process. It starts no thread in the run's process (the fit process is forked from it).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+
+
+def _serve(conn) -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C is the run's to handle; it closes this process
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot  # noqa: F401
+
+    from capture.export.report_html import figures
+
+    while True:
+        try:
+            series = conn.recv()
+        except (EOFError, OSError):                # the run is done or gone
+            return
+        if series is None:
+            return
+        try:
+            conn.send(("ok", figures(series)))
+        except Exception as exc:  # handed to the run, which draws the figures itself
+            conn.send(("error", f"{type(exc).__name__}: {exc}"))
+
+
+class FigureProcess:
+    """``FigureProcess()`` starts the process; :meth:`submit` a series, then :meth:`result`; :meth:`close` ends
+    it (always call it)."""
+
+    def __init__(self):
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=_serve, args=(child,), name="capture-report-figures", daemon=True)
+        self._proc.start()
+        child.close()
+        self._series, self._sent = None, False
+
+    def submit(self, series) -> None:
+        """Start drawing ``report_html.figures(series)`` in the process; :meth:`result` gives them."""
+        self._series = series
+        try:
+            self._conn.send(series)
+            self._sent = True
+        except (OSError, ValueError):
+            self._sent = False
+
+    def result(self) -> list[tuple[str, str]]:
+        """The figures of the submitted series, drawn in the process (here, if it was not usable)."""
+        from capture.export.report_html import figures
+
+        try:
+            if self._sent:
+                while not self._conn.poll(0.2):
+                    if not self._proc.is_alive():
+                        raise EOFError
+                status, figs = self._conn.recv()
+                if status == "ok":
+                    return figs
+        except (EOFError, OSError, ValueError):
+            pass
+        return figures(self._series)
+
+    def close(self) -> None:
+        try:
+            self._conn.send(None)
+        except (OSError, ValueError):
+            pass
+        self._conn.close()
+        self._proc.join(2.0)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join()
+
+    def __enter__(self) -> FigureProcess:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
