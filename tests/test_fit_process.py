@@ -81,9 +81,11 @@ def test_an_error_of_the_fit_reaches_the_parent_with_its_type(take):
     actor, tp, cam, rows, _ = take
     bad = rows[:2] + [(rows[2][0][:50], rows[2][1][:50], True)] + rows[3:]     # a row of 50 landmarks, not 100
     worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
-    with pytest.raises(ValueError, match=r"frame 2: landmarks should be \(100, 2\)"):
+    with pytest.raises(ValueError, match=r"frame 2: landmarks should be \(100, 2\)") as caught:
         _run(worker, bad)
     assert not worker._proc.is_alive()
+    note = "".join(getattr(caught.value, "__notes__", []))
+    assert "in the fit process" in note and "capture/fit/stream.py" in note     # the child's traceback, for logs
 
 
 def test_a_failing_feed_stops_the_fit_process(take):

@@ -100,6 +100,10 @@ def _child_main(rows_conn, out_conn, parent_ends, actor, template_points, camera
         except (OSError, ValueError):
             pass
     except BaseException as exc:  # handed to the parent, which raises it
+        from capture.io.errors import CaptureError
+
+        if not isinstance(exc, CaptureError) and hasattr(exc, "add_note"):   # where it failed, for the log
+            exc.add_note(f"in the fit process:\n{traceback.format_exc()}")
         try:
             out_conn.send(("error", exc))
         except Exception:            # not picklable, or the parent is gone
