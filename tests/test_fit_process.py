@@ -75,17 +75,36 @@ def test_the_worker_gives_the_fits_of_this_process(take, in_process):
 
 
 def test_an_error_of_the_fit_reaches_the_parent_with_its_type(take):
+    """No frame has a face: the fit process fails (no head pose anywhere) and the parent raises that error,
+    with its type, its message and, as a note for the log, where in the fit process it happened."""
     from capture.fit.process import FitWorker
     from capture.fit.take import WindowedFit
 
     actor, tp, cam, rows, _ = take
-    bad = rows[:2] + [(rows[2][0][:50], rows[2][1][:50], True)] + rows[3:]     # a row of 50 landmarks, not 100
+    faceless = [(p, w, False) for p, w, _ in rows]
     worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
-    with pytest.raises(ValueError, match=r"frame 2: landmarks should be \(100, 2\)") as caught:
-        _run(worker, bad)
+    with pytest.raises(ValueError, match="PnP failed everywhere") as caught:
+        _run(worker, faceless)
     assert not worker._proc.is_alive()
     note = "".join(getattr(caught.value, "__notes__", []))
     assert "in the fit process" in note and "capture/fit/stream.py" in note     # the child's traceback, for logs
+
+
+def test_a_bad_row_fails_in_the_feed_and_stops_the_fit(take):
+    """A row of 50 landmarks where the actor has 100: feed (which cleans the rows and runs the PnP) raises
+    at that row, and the fit process stops."""
+    from capture.fit.process import FitStopped, FitWorker
+    from capture.fit.take import WindowedFit
+
+    actor, tp, cam, rows, _ = take
+    bad = rows[:2] + [(rows[2][0][:50], rows[2][1][:50], True)] + rows[3:]
+    worker = FitWorker(actor, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=True)
+    with pytest.raises(ValueError, match=r"frame 2: landmarks should be \(100, 2\)"):
+        worker.feed(iter(bad))
+    with pytest.raises(FitStopped):
+        list(worker.results())
+    worker.close(timeout=30)
+    assert not worker._proc.is_alive()
 
 
 def test_a_failing_feed_stops_the_fit_process(take):

@@ -10,12 +10,11 @@ the jaw are left to the sequence fit (its ``F_T`` corrects these poses).
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
-from scipy.spatial.transform import Rotation, Slerp
 
 
 @dataclass(frozen=True)
@@ -71,11 +70,51 @@ def pnp_frame(model_points: np.ndarray, points2d: np.ndarray, weights: np.ndarra
     return R, t
 
 
+def clean_row(points, weights, found, n_landmarks: int, frame: int) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's ``(points (L, 2) float64, weights (L,))`` as the fit uses them: a point that is not finite,
+    or of a frame without a face, weighs 0; weights are clipped at 0 (None: 1 where finite)."""
+    p = np.asarray(points, np.float64)
+    if p.shape != (n_landmarks, 2):
+        raise ValueError(f"frame {frame}: landmarks should be ({n_landmarks}, 2); got {p.shape}")
+    finite = np.isfinite(p).all(1)
+    w = finite.astype(np.float64) if weights is None else np.asarray(weights, np.float64).copy()
+    if w.shape != (n_landmarks,):
+        raise ValueError(f"frame {frame}: weights should be ({n_landmarks},); got {w.shape}")
+    return p, np.where(finite & bool(found) & np.isfinite(w), np.clip(w, 0.0, None), 0.0)
+
+
+class PnPChain:
+    """The per-frame PnP of a take, in frame order: each frame starts from the previous good pose (and
+    from nothing when that fails). ``next(points, weights)`` -> ``(R, t)`` or None (too few points).
+
+    :func:`initial_head_poses` runs it over a take, :class:`capture.fit.stream.StreamLandmarkSource` on the
+    rows it reads, unless they bring its result (the fit process's parent runs it beside detection,
+    :mod:`capture.fit.process`): the same calls in the same order give the same poses.
+    """
+
+    def __init__(self, model_points: np.ndarray, K: np.ndarray, dist: np.ndarray, settings: PnPSettings):
+        self.model, self.K, self.dist, self.settings = model_points, K, dist, settings
+        self.guess = None
+        self.seconds = 0.0
+
+    def next(self, p: np.ndarray, w: np.ndarray):
+        t0 = time.perf_counter()
+        res = pnp_frame(self.model, p, w, self.K, self.dist, self.settings, self.guess)
+        if res is None and self.guess is not None:  # a bad guess must not lose the frame
+            res = pnp_frame(self.model, p, w, self.K, self.dist, self.settings, None)
+        if res is not None:
+            self.guess = (cv2.Rodrigues(res[0])[0], res[1].reshape(3, 1).copy())
+        self.seconds += time.perf_counter() - t0
+        return res
+
+
 def interpolate_poses(R: np.ndarray, t: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Fill frames where ``ok`` is False: slerp / linear between neighbours, held at the ends.
 
     Args: R ``(T, 3, 3)``, t ``(T, 3)``, ok ``(T,)`` bool with at least one True.
     """
+    from scipy.spatial.transform import Rotation, Slerp   # here: the PnP alone is run without scipy
+
     T = len(ok)
     good = np.flatnonzero(ok)
     if len(good) == 0:
@@ -92,6 +131,9 @@ def interpolate_poses(R: np.ndarray, t: np.ndarray, ok: np.ndarray) -> tuple[np.
 
 def smooth_poses(R: np.ndarray, t: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian smoothing over time of rotations (sign-aligned quaternions) and translations."""
+    from scipy.ndimage import gaussian_filter1d
+    from scipy.spatial.transform import Rotation
+
     if sigma <= 0 or len(t) < 2:
         return R, t
     q = Rotation.from_matrix(R).as_quat()
@@ -120,15 +162,12 @@ def initial_head_poses(model_points: np.ndarray, points2d: np.ndarray, weights: 
     R = np.tile(np.eye(3), (T, 1, 1))
     t = np.zeros((T, 3))
     found = np.zeros(T, bool)
-    guess = None
+    chain = PnPChain(model_points, K, dist, settings)
     for j in range(T):
-        res = pnp_frame(model_points, points2d[j], weights[j], K, dist, settings, guess)
-        if res is None and guess is not None:  # a bad guess must not lose the frame
-            res = pnp_frame(model_points, points2d[j], weights[j], K, dist, settings, None)
+        res = chain.next(points2d[j], weights[j])
         if res is not None:
             R[j], t[j] = res
             found[j] = True
-            guess = (cv2.Rodrigues(R[j])[0], t[j].reshape(3, 1).copy())
     if not found.any():
         raise ValueError("no frame has enough landmarks for a head pose (PnP failed everywhere)")
     R, t = interpolate_poses(R, t, found)

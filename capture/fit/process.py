@@ -1,22 +1,26 @@
 """The streamed take fit in a process of its own, so that it has a core to itself.
 
-:func:`capture.fit.stream.fit_take_stream` is Python-heavy (many small torch ops per step), and in the
-threads of ``capture run``'s pipeline it shares the GIL with decoding and detection: at 300 frames it
-ran 1.3x slower there than alone. :class:`FitWorker` runs it in a child process instead, fed one row of
+:func:`capture.fit.stream.fit_take_stream` is Python-heavy (many small torch ops per step); in a thread
+of ``capture run``'s pipeline it ran 1.5x slower than alone (the GIL, and the run's fixed mmap threshold:
+:func:`_heap_for_compute`). :class:`FitWorker` runs it in a child process instead, fed one row of
 landmarks at a time through a pipe, with the same results (the child runs the same code on the same
-numbers; its window cache is the same folder).
+numbers; its window cache is the same folder). The per-frame PnP of the head poses runs in the parent
+(:meth:`FitWorker.feed`), beside decoding and detection: the same calls in the same order.
 
 The child is forked, so it starts at once with the parent's loaded actor (nothing is pickled but the
-rows, the fits and, at the end, the actor's rig). The parent's actor may not have built its networks
-(:class:`capture.actor.package.Actor` makes them on first use): then the child imports torch and
-builds them while the parent decodes and detects, and the parent never needs torch. Fork it before the parent starts other threads (a lock held by another thread at
-the fork would stay held in the child). Where fork is not available (Windows, or ``in_process=True``)
-the same code runs in a thread, through the same pipes.
+rows, the fits, the PnP model and, at the end, the actor's rig). The parent's actor may not have built
+its networks (:class:`capture.actor.package.Actor` makes them on first use): then the child imports
+torch and builds them while the parent decodes and detects, and the parent never needs torch. Fork it
+before the parent starts other threads (a lock held by another thread at the fork would stay held in
+the child). Where fork is not available (Windows, or ``in_process=False``) the same code runs in a
+thread, through the same pipes.
 
 Protocol::
 
-    parent -> child   (points (L, 2), weights (L,), face_found) per frame, then END (or ABORT)
-    child -> parent   ("ready",) once the actor's networks are built, ("fit", FrameFit, rows read so far) per frame, then ("end", timings, the actor's
+    parent -> child   (points (L, 2), weights (L,), face_found, PnP head pose or None) per frame, then
+                      END (or ABORT)
+    child -> parent   on its own pipe, the PnP model points once the actor's networks are built; then
+                      ("fit", FrameFit, rows read so far) per frame, then ("end", timings, the actor's
                       FaceRig, which the parent adopts), ("error", exception) or ("aborted",)
 
 Signals: the child ignores SIGINT and SIGTERM, which the parent handles (Ctrl-C reaches the whole process
@@ -27,6 +31,7 @@ cached). If the parent dies, the child reads the end of its pipe and exits.
 from __future__ import annotations
 
 import multiprocessing
+import queue
 import signal
 import threading
 import time
@@ -46,7 +51,7 @@ class _Aborted(Exception):
     pass
 
 
-def _child_main(rows_conn, out_conn, parent_ends, actor, template_points, camera, how, causal, threads,
+def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_points, camera, how, causal, threads,
                 in_thread) -> None:
     """The fit, reading rows from ``rows_conn`` and sending fits to ``out_conn``."""
     if not in_thread:
@@ -57,18 +62,31 @@ def _child_main(rows_conn, out_conn, parent_ends, actor, template_points, camera
         _heap_for_compute()
     import torch
 
-    from capture.fit.stream import fit_take_stream
+    from capture.fit.stream import fit_take_stream, pnp_model_points
 
     torch.set_num_threads(max(1, int(threads)))      # once, for this stage
 
     read = [0]
+    inbox: queue.Queue = queue.Queue()
 
-    def rows():
+    def receive():
+        """Drain the pipe as rows come, so that the parent never waits on a full pipe: it computes the next
+        rows' PnP while this process solves a window."""
         while True:
             try:
                 item = rows_conn.recv()
-            except EOFError:           # the parent is gone
-                raise _Aborted from None
+            except (EOFError, OSError):    # the parent is gone
+                inbox.put(ABORT)
+                return
+            inbox.put(item)
+            if isinstance(item, str):
+                return
+
+    threading.Thread(target=receive, name="capture-fit-rows", daemon=True).start()
+
+    def rows():
+        while True:
+            item = inbox.get()
             if isinstance(item, str):
                 if item == END:
                     return
@@ -80,7 +98,7 @@ def _child_main(rows_conn, out_conn, parent_ends, actor, template_points, camera
     try:
         if hasattr(actor, "at_template"):     # build the networks and evaluate them now (see FitWorker.wait_ready)
             actor.at_template()
-        out_conn.send(("ready",))
+        ready_conn.send(pnp_model_points(actor, template_points, how.device))
         busy, t_last = 0.0, time.perf_counter()
         for ff in fit_take_stream(actor, rows(), template_points, camera, how, causal=causal, timings=timings):
             now = time.perf_counter()
@@ -115,6 +133,7 @@ def _child_main(rows_conn, out_conn, parent_ends, actor, template_points, camera
     finally:
         if not in_thread:
             out_conn.close()
+            ready_conn.close()
 
 
 def _heap_for_compute() -> None:
@@ -142,7 +161,7 @@ class FitWorker:
     Use::
 
         worker = FitWorker(actor, template_points, camera, how)   # forks here: before other threads start
-        # in one thread:   worker.feed(rows)                       # rows: (points, weights, face_found)
+        # in one thread:   worker.feed(rows, stop)                 # rows: (points, weights, face_found)
         # in another:      for ff, rows_read in worker.results(stop): ...
         worker.close()                                            # always (also after an error)
 
@@ -152,6 +171,8 @@ class FitWorker:
 
     def __init__(self, actor, template_points, camera, how, causal: bool = False, threads: int = 1,
                  in_process: bool | None = None):
+        from capture.fit.init import PnPSettings
+
         if in_process is None:
             in_process = "fork" in multiprocessing.get_all_start_methods()
         self.in_process = bool(in_process)
@@ -159,16 +180,22 @@ class FitWorker:
         ctx = multiprocessing.get_context("fork") if self.in_process else multiprocessing
         self._rows_child, self._rows = ctx.Pipe(duplex=False)    # (receive end, send end)
         self._out, self._out_child = ctx.Pipe(duplex=False)
+        self._ready, self._ready_child = ctx.Pipe(duplex=False)     # the PnP model, once the networks are built
         self.timings: dict = {}
+        self._n_landmarks, self._camera = len(template_points), camera
+        self._pnp_settings = PnPSettings()     # fit_take_stream's default
+        self._ready_lock = threading.Lock()
+        self._model_points = None
+        self._pnp_s = 0.0
         self._send_lock = threading.Lock()
         self._sent_end = False
-        args = (self._rows_child, self._out_child, (self._rows, self._out), actor, template_points, camera, how,
-                causal, threads, not self.in_process)
+        args = (self._rows_child, self._out_child, self._ready_child, (self._rows, self._out, self._ready), actor,
+                template_points, camera, how, causal, threads, not self.in_process)
         if self.in_process:
             self._proc = ctx.Process(target=_child_main, args=args, name="capture-fit", daemon=True)
             self._proc.start()
-            self._rows_child.close()
-            self._out_child.close()
+            for c in (self._rows_child, self._out_child, self._ready_child):
+                c.close()
         else:
             self._proc = threading.Thread(target=_child_main, args=args, name="capture-fit", daemon=True)
             self._proc.start()
@@ -180,16 +207,45 @@ class FitWorker:
                 if isinstance(item, str):
                     self._sent_end = True
 
-    def feed(self, rows: Iterable) -> None:
+    def feed(self, rows: Iterable, stop: threading.Event | None = None) -> None:
         """Send every row of ``rows``, then the end of the take; an error in ``rows`` aborts the fit (and is
-        raised here)."""
+        raised here).
+
+        Each row goes with its head pose by PnP (:class:`capture.fit.init.PnPChain`, the fit's own, run
+        here: it is a quarter of the fit's time, and this process has time beside decoding and detection).
+        Its 3D model, the actor's neutral at the landmarks, comes from the fit once it has built the
+        networks; rows wait for it in ``rows``' queue.
+        """
+        from capture.fit.init import PnPChain, clean_row
+
+        chain = None
         try:
-            for points, weights, found in rows:
-                self._send((points, weights, bool(found)))
+            for j, (points, weights, found) in enumerate(rows):
+                if chain is None:
+                    chain = PnPChain(self._wait_model_points(stop), self._camera.K, self._camera.dist,
+                                     self._pnp_settings)
+                p, w = clean_row(points, weights, found, self._n_landmarks, j)
+                self._send((p, w, bool(found), chain.next(p, w)))
+                self._pnp_s = chain.seconds
         except BaseException:
             self.abort()
             raise
         self._send(END)
+
+    def _wait_model_points(self, stop: threading.Event | None = None):
+        """The PnP model the fit sends once it has built the actor's networks (waits for it)."""
+        with self._ready_lock:
+            while self._model_points is None:
+                if self._ready.poll(0.1):
+                    try:
+                        self._model_points = self._ready.recv()
+                    except EOFError:        # it failed before: results() raises its error
+                        raise FitStopped("the fit process ended before it was ready") from None
+                elif stop is not None and stop.is_set():
+                    raise FitStopped
+                elif not self._alive() and not self._ready.poll(0):
+                    raise FitStopped("the fit ended before it was ready")
+            return self._model_points
 
     def abort(self) -> None:
         """Tell the fit to stop after the window it is solving."""
@@ -217,10 +273,8 @@ class FitWorker:
                 raise RuntimeError(f"the fit process ended unexpectedly (exit code {self._exitcode()})") from None
             if msg[0] == "fit":
                 yield msg[1], msg[2]
-            elif msg[0] == "ready":
-                continue
             elif msg[0] == "end":
-                self.timings = msg[1]
+                self.timings = {**msg[1], "pnp_s": self._pnp_s}
                 if msg[2] is not None and self.in_process:   # the parent's actor need not evaluate its networks
                     self.actor.set_face_rig(msg[2])
                 return
@@ -232,17 +286,14 @@ class FitWorker:
     def wait_ready(self) -> None:
         """Wait until the fit has built the actor's networks (``capture live``: before the source plays, so
         that no frame is dropped while torch is imported); raises the fit's error."""
-        while True:
-            if not self._out.poll(0.1):
-                if not self._alive() and not self._out.poll(0):
-                    raise RuntimeError(f"the fit process ended unexpectedly (exit code {self._exitcode()})")
-                continue
-            msg = self._out.recv()
-            if msg[0] == "ready":
-                return
-            if msg[0] == "error":
-                raise msg[1]
-            raise RuntimeError(f"the fit process said {msg[0]!r} before it was ready")
+        try:
+            self._wait_model_points()
+        except FitStopped:
+            if self._out.poll(5.0):
+                msg = self._out.recv()
+                if msg[0] == "error":
+                    raise msg[1] from None
+            raise RuntimeError(f"the fit process ended before it was ready (exit code {self._exitcode()})") from None
 
     def _alive(self) -> bool:
         return self._proc.is_alive()
@@ -265,5 +316,5 @@ class FitWorker:
             if self._proc.is_alive():
                 self._proc.kill()
                 self._proc.join()
-            for c in (self._rows, self._out):
+            for c in (self._rows, self._out, self._ready):
                 c.close()

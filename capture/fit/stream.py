@@ -16,7 +16,10 @@ and solves each window as soon as the frames it depends on have arrived:
   it arrives). A frame is then final when its window is solved: at most ``window - 1`` frames after it.
 
 Landmarks: each item of the iterator is ``(points (L, 2) px, weights (L,) in [0, 1] or None, face_found)``;
-the weights are treated as :func:`capture.fit.take.fit_take` treats a row of its ``weights``.
+the weights are treated as :func:`capture.fit.take.fit_take` treats a row of its ``weights``. An item may
+also be ``(points, weights, face_found, pose)`` with the rows cleaned by :func:`capture.fit.init.clean_row` and the head
+pose that :class:`capture.fit.init.PnPChain` gave for it (``(R, t)`` or None), computed by the caller
+over the same rows in the same order (:mod:`capture.fit.process` does so beside detection).
 """
 
 from __future__ import annotations
@@ -26,13 +29,12 @@ import time
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
-import cv2
 import numpy as np
 import torch
 
 from calib.camera import Camera
 from calib.projection import camera_tensors
-from capture.fit.init import PnPSettings, interpolate_poses, pnp_frame, smooth_poses
+from capture.fit.init import PnPChain, PnPSettings, clean_row, interpolate_poses, smooth_poses
 from capture.fit.take import (CACHE_VERSION, FrameFit, WindowedFit, _check_window, _fingerprint, _query, _run_windows,
                               _Window, query_template, reprojection_metrics, resolve_settings,
                               resolved_settings_dict)
@@ -67,7 +69,7 @@ class StreamLandmarkSource:
         self.ok: list[bool] = []
         self.last_good = -1
         self.n_good = 0
-        self.guess = None
+        self.chain = PnPChain(model_points, K, dist, pnp)
         self.n = 0                                # frames received
         self.ended = False
         sigma = pnp.smooth_sigma_frames
@@ -76,7 +78,6 @@ class StreamLandmarkSource:
         self.first_pose = None
         self.causal_pose: dict[int, tuple | None] = {}
         self.wait_s = 0.0                         # time spent waiting for frames
-        self.pnp_s = 0.0
 
     # ---------------------------------------------------------------- input
     def _pull(self) -> bool:
@@ -91,26 +92,16 @@ class StreamLandmarkSource:
             self.wait_s += time.perf_counter() - t0
             return False
         self.wait_s += time.perf_counter() - t0
-        points, weights, found = item
-        p = np.asarray(points, np.float64)
-        if p.shape != (self.L, 2):
-            raise ValueError(f"frame {self.n}: landmarks should be ({self.L}, 2); got {p.shape}")
-        finite = np.isfinite(p).all(1)
-        w = finite.astype(np.float64) if weights is None else np.asarray(weights, np.float64).copy()
-        if w.shape != (self.L,):
-            raise ValueError(f"frame {self.n}: weights should be ({self.L},); got {w.shape}")
-        w = np.where(finite & bool(found) & np.isfinite(w), np.clip(w, 0.0, None), 0.0)
         j = self.n
+        if len(item) == 4:       # (points, weights, found, PnP result) from a PnPChain run elsewhere
+            p, w, _, res = item
+        else:
+            p, w = clean_row(*item, self.L, j)
+            res = self.chain.next(p, w)
         self.p[j], self.w[j] = p, w
-        t0 = time.perf_counter()
-        res = pnp_frame(self.model, p, w, self.K, self.dist, self.pnp, self.guess)
-        if res is None and self.guess is not None:
-            res = pnp_frame(self.model, p, w, self.K, self.dist, self.pnp, None)
         if res is not None:
-            self.guess = (cv2.Rodrigues(res[0])[0], res[1].reshape(3, 1).copy())
             self.last_good = j
             self.n_good += 1
-        self.pnp_s += time.perf_counter() - t0
         if self.causal:      # the pose held from the last good frame (None before the first): O(1) per frame
             if res is not None:
                 self.first_pose = self.first_pose or res
@@ -173,6 +164,12 @@ class StreamLandmarkSource:
             self.causal_pose.pop(j, None)
 
 
+def pnp_model_points(actor, template_points: np.ndarray, device="cpu") -> np.ndarray:
+    """``(L, 3)`` float64 mm: the actor's neutral at the landmarks' template points, the per-frame PnP's
+    3D model (as :func:`fit_take_stream` uses it)."""
+    return _query(actor, np.asarray(template_points, np.float64), device).neutral.cpu().double().numpy()
+
+
 def fit_take_stream(actor, frames: Iterable, template_points: np.ndarray, camera: Camera,
                     how: WindowedFit = WindowedFit(), pnp: PnPSettings | None = None, causal: bool = False,
                     progress: Callable[[int, int | None], None] | None = None,
@@ -218,7 +215,7 @@ def fit_take_stream(actor, frames: Iterable, template_points: np.ndarray, camera
             yield from _run_windows(src, fit_actor, out_actor, s, window, overlap, cache, progress, how.threads, base,
                                     None, K, dist, tm)
         finally:
-            tm["pnp_s"] = src.pnp_s
+            tm["pnp_s"] = src.chain.seconds
             tm["wait_s"] = src.wait_s
 
     return run()

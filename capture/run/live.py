@@ -287,7 +287,10 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
                 position.append(int(r.frame_index))
                 yield r.points, _frame_weights(r.points, r.confidence), bool(r.face_found)
 
-        worker.feed(rows())
+        try:
+            worker.feed(rows(), pl.stop)
+        except FitStopped:
+            raise _Stopped from None
 
     def fit():
         try:

@@ -48,7 +48,9 @@ from capture.io.errors import CaptureError
 from capture.run.progress import StageProgress
 from capture.run.store import array_digest, digest, read_json, save_frame_fits
 
-QUEUE_FRAMES = 64              # landmarks / fits waiting between stages
+QUEUE_FRAMES = 64              # fits waiting for the export
+LANDMARK_QUEUE_FRAMES = 256    # landmarks waiting for the fit (a few KB each): detection goes on while the
+                               # fit process imports torch and builds the actor's networks (~1.7 s)
 DECODE_BUDGET_BYTES = 256 << 20  # decoded frames of one group of detection segments
 _END = object()
 
@@ -233,7 +235,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     _frames_off_heap()
     pipe_line = Pipeline()
     decoded = pipe_line.pipe(1)
-    landmarks = pipe_line.pipe(QUEUE_FRAMES)
+    landmarks = pipe_line.pipe(LANDMARK_QUEUE_FRAMES)
     fits = pipe_line.pipe(QUEUE_FRAMES)
     clocks = {k: StageClock() for k in ("decode", "detect", "feed", "fit", "export")}
     results: list = []                          # FrameLandmarks of the requested frames, in order
@@ -324,7 +326,10 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     how = replace(windowed_fit(inputs, stage_dir / "windows"), threads=None)
 
     def feed():
-        worker.feed(rows())
+        try:
+            worker.feed(rows(), pipe_line.stop)
+        except FitStopped:
+            raise _Stopped from None
 
     def fit():
         chunks: list[str] = []
