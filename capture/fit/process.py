@@ -12,8 +12,8 @@ rows, the fits, the PnP model and, at the end, the actor's rig). The parent's ac
 its networks (:class:`capture.actor.package.Actor` makes them on first use): then the child imports
 torch and builds them while the parent decodes and detects, and the parent never needs torch. Fork it
 before the parent starts other threads (a lock held by another thread at the fork would stay held in
-the child). Where fork is not available (Windows, or ``in_process=False``) the same code runs in a
-thread, through the same pipes.
+the child). Off Linux (no fork on Windows; macOS' system libraries are not fork-safe), or with
+``in_process=False``, the same code runs in a thread, through the same pipes.
 
 Protocol::
 
@@ -33,6 +33,7 @@ from __future__ import annotations
 import multiprocessing
 import queue
 import signal
+import sys
 import threading
 import time
 import traceback
@@ -173,8 +174,8 @@ class FitWorker:
                  in_process: bool | None = None):
         from capture.fit.init import PnPSettings
 
-        if in_process is None:
-            in_process = "fork" in multiprocessing.get_all_start_methods()
+        if in_process is None:     # fork is safe on Linux; macOS' system libraries are not fork-safe
+            in_process = sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
         self.in_process = bool(in_process)
         self.actor = actor
         ctx = multiprocessing.get_context("fork") if self.in_process else multiprocessing

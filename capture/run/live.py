@@ -309,6 +309,7 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
     worker = FitWorker(actor, points, camera.camera, how, causal=True, threads=cfg.threads)
     try:
         worker.wait_ready()        # the networks are built before the source plays: no frame dropped for that
+        warm_s = time.perf_counter() - t_start
         t_start = time.perf_counter()
         with open_exporters(cfg.formats, out, ctx) as writers:
             pl.start("capture", capture, clocks["capture"])
@@ -355,6 +356,7 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
         "latency_s": {"median": float(np.median(latencies)) if latencies else None,
                       "p95": float(np.percentile(latencies, 95)) if latencies else None},
         "seconds": wall, "fps_processed": stats["processed"] / wall if wall > 0 else None,
+        "fit_warmup_s": warm_s,    # the fit process building the networks, before the source played
         "busy_seconds": {k: round(c.busy, 3) for k, c in clocks.items()},
         "outputs": sorted(str(Path(p).name) for p in writers.paths),
     }

@@ -5,7 +5,8 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
 
     decode thread   VideoReader: the frames of the detection segments not in the cache     -> (segment group, frames)
     detect thread   cached segments read, the others detected (Detector.run_lanes)         -> FrameLandmarks per frame
-    feed thread     the landmarks checked (capture.run.checks) and sent to the fit process
+    feed thread     the landmarks checked (capture.run.checks), their head pose by PnP
+                    (capture.fit.init.PnPChain), sent to the fit process
     fit process     capture.fit.stream.fit_take_stream: each window solved as soon as      -> FrameFit per frame
                     its frames (and the initial poses they depend on) are there
                     (capture.fit.process: forked, so it has the loaded actor and a core of its own;
