@@ -464,6 +464,10 @@ def _frames_off_heap() -> None:
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         libc.mallopt(-3, 1 << 20)      # M_MMAP_THRESHOLD = 1 MiB (fixed: no dynamic adjustment)
+        libc.mallopt(-1, 64 << 20)     # M_TRIM_THRESHOLD: fixing the first leaves this at 128 KB, and a
+                                       # fit in this process (capture batch) then gave memory back and
+                                       # faulted it in again at every step (the fit alone 1.2x slower, a
+                                       # 300-frame take 15.2 -> 14.2 s; peak memory the same)
     except (OSError, AttributeError):
         pass
 
