@@ -64,55 +64,79 @@ class TakeSeries:
     conf_share: np.ndarray       # (T,) share of landmarks with confidence >= 0.5
 
 
+class SeriesCollector:
+    """Builds a :class:`TakeSeries` from frame fits given one at a time (``add``), then ``series(...)``:
+    per frame a few numbers, and two meshes held for the jitter. ``capture run``'s stream feeds it the fits
+    as they are exported, so the report need not read the fit back (:func:`take_series` is the same on an
+    iterable)."""
+
+    def __init__(self, n_expressions: int):
+        self.E = int(n_expressions)
+        self.rows: dict[str, list] = {k: [] for k in ("frame", "status", "head_R", "head_t", "jaw_R", "jaw_t", "w",
+                                                      "acc")}
+        self.prev: list[np.ndarray | None] = [None, None]
+
+    def add(self, f) -> None:
+        from capture.export.base import to_head_frame
+        from capture.export.rig import frame_base_weights
+
+        rows = self.rows
+        rows["frame"].append(int(f.frame))
+        rows["status"].append(str(getattr(f, "status", "fitted")))
+        for k in ("head_R", "head_t", "jaw_R", "jaw_t"):
+            v = getattr(f, k, None)
+            rows[k].append(np.full((3, 3) if k.endswith("R") else 3, np.nan) if v is None else np.asarray(v, float))
+        rows["w"].append(frame_base_weights(f, self.E))
+        v = getattr(f, "vertices", None)
+        cur = None if v is None else to_head_frame(v, f.head_R, f.head_t).astype(np.float64)
+        a, b = self.prev
+        rows["acc"].append(None if a is None or b is None or cur is None else
+                           float(np.sqrt(((cur - 2 * b + a) ** 2).sum(1).mean())))
+        self.prev = [b, cur]
+
+    def series(self, fps: float, names: Sequence[str], errors: dict[int, float | None], error_unit: str,
+               detections: dict[int, Any] | None = None) -> TakeSeries:
+        from capture.export.rig import head_angles_deg, jaw_angles_deg
+
+        E, rows = len(names), self.rows
+        if E != self.E:
+            raise ValueError(f"{E} expression names for series of {self.E} expressions")
+        T = len(rows["frame"])
+        frame = np.asarray(rows["frame"], np.int64)
+        jitter = np.full(T, np.nan)
+        for j in range(2, T):   # acc of frame j is centred at j - 1
+            if rows["acc"][j] is not None:
+                jitter[j - 1] = rows["acc"][j]
+        face = np.ones(T, bool)
+        med, p10, share = (np.full(T, np.nan) for _ in range(3))
+        for j, i in enumerate(frame):
+            d = None if detections is None else detections.get(int(i))
+            if d is None:
+                continue
+            face[j] = bool(d.face_found)
+            c = getattr(d, "confidence", None)
+            if c is not None and d.face_found:
+                c = np.asarray(c, np.float64)
+                c = c[np.isfinite(c)]
+                if c.size:
+                    med[j], p10[j], share[j] = np.median(c), np.percentile(c, 10), (c >= CONFIDENT).mean()
+        err = np.array([np.nan if errors.get(int(i)) is None else float(errors[int(i)]) for i in frame])
+        stack = (lambda k, shape: np.stack(rows[k]) if T else np.zeros((0,) + shape))
+        return TakeSeries(frame=frame, time_s=frame / float(fps), status=list(rows["status"]), error=err,
+                          error_unit=error_unit, head_deg=head_angles_deg(stack("head_R", (3, 3))),
+                          head_t=stack("head_t", (3,)), jaw_deg=jaw_angles_deg(stack("jaw_R", (3, 3))),
+                          jaw_t=stack("jaw_t", (3,)), weights=stack("w", (E,)) if E else np.zeros((T, 0)),
+                          names=tuple(names), jitter_mm=jitter, face_found=face, conf_median=med, conf_p10=p10,
+                          conf_share=share)
+
+
 def take_series(fits: Iterable[Any], fps: float, names: Sequence[str], errors: dict[int, float | None],
                 error_unit: str, detections: dict[int, Any] | None = None) -> TakeSeries:
     """Collect the series from frame fits (streamed once; two meshes held for the jitter)."""
-    from capture.export.base import to_head_frame
-    from capture.export.rig import frame_base_weights, head_angles_deg, jaw_angles_deg
-
-    E = len(names)
-    rows: dict[str, list] = {k: [] for k in ("frame", "status", "head_R", "head_t", "jaw_R", "jaw_t", "w", "acc")}
-    prev: list[np.ndarray | None] = [None, None]
+    collector = SeriesCollector(len(names))
     for f in fits:
-        rows["frame"].append(int(f.frame))
-        rows["status"].append(str(getattr(f, "status", "fitted")))
-        for k, attr in (("head_R", "head_R"), ("head_t", "head_t"), ("jaw_R", "jaw_R"), ("jaw_t", "jaw_t")):
-            v = getattr(f, attr, None)
-            rows[k].append(np.full((3, 3) if k.endswith("R") else 3, np.nan) if v is None else np.asarray(v, float))
-        rows["w"].append(frame_base_weights(f, E))
-        v = getattr(f, "vertices", None)
-        cur = None if v is None else to_head_frame(v, f.head_R, f.head_t).astype(np.float64)
-        a, b = prev
-        rows["acc"].append(None if a is None or b is None or cur is None else
-                           float(np.sqrt(((cur - 2 * b + a) ** 2).sum(1).mean())))
-        prev = [b, cur]
-    T = len(rows["frame"])
-    frame = np.asarray(rows["frame"], np.int64)
-    jitter = np.full(T, np.nan)
-    for j in range(2, T):   # acc of frame j is centred at j - 1
-        if rows["acc"][j] is not None:
-            jitter[j - 1] = rows["acc"][j]
-    face = np.ones(T, bool)
-    med, p10, share = (np.full(T, np.nan) for _ in range(3))
-    for j, i in enumerate(frame):
-        d = None if detections is None else detections.get(int(i))
-        if d is None:
-            continue
-        face[j] = bool(d.face_found)
-        c = getattr(d, "confidence", None)
-        if c is not None and d.face_found:
-            c = np.asarray(c, np.float64)
-            c = c[np.isfinite(c)]
-            if c.size:
-                med[j], p10[j], share[j] = np.median(c), np.percentile(c, 10), (c >= CONFIDENT).mean()
-    err = np.array([np.nan if errors.get(int(i)) is None else float(errors[int(i)]) for i in frame])
-    stack = (lambda k, shape: np.stack(rows[k]) if T else np.zeros((0,) + shape))
-    return TakeSeries(frame=frame, time_s=frame / float(fps), status=rows["status"], error=err,
-                      error_unit=error_unit, head_deg=head_angles_deg(stack("head_R", (3, 3))),
-                      head_t=stack("head_t", (3,)), jaw_deg=jaw_angles_deg(stack("jaw_R", (3, 3))),
-                      jaw_t=stack("jaw_t", (3,)), weights=stack("w", (E,)) if E else np.zeros((T, 0)),
-                      names=tuple(names), jitter_mm=jitter, face_found=face, conf_median=med, conf_p10=p10,
-                      conf_share=share)
+        collector.add(f)
+    return collector.series(fps, names, errors, error_unit, detections)
 
 
 def worst_frames(s: TakeSeries, k: int = WORST_FRAMES) -> list[int]:

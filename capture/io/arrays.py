@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import zipfile
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -59,8 +60,9 @@ def npz_members(path: Path, max_bytes: int = DEFAULT_MAX_BYTES) -> dict[str, tup
 
 
 def load_npz(path: str | os.PathLike, what: str, fix: str, max_bytes: int = DEFAULT_MAX_BYTES,
-             required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
-    """All arrays of the NPZ at ``path`` after :func:`npz_members` accepted it.
+             required: tuple[str, ...] = (), only: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    """All arrays of the NPZ at ``path`` after :func:`npz_members` accepted it (``only``: just these, when
+    present; the others are not read).
 
     ``what`` names the file for the user ("fit cache", "actor constraints"); ``fix`` says what to do
     ("delete it or rerun with --overwrite"). ``required`` member names must be present.
@@ -72,7 +74,8 @@ def load_npz(path: str | os.PathLike, what: str, fix: str, max_bytes: int = DEFA
         if missing:
             raise ValueError(f"it lacks {', '.join(missing)}")
         with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+            keep = set(z.files) if only is None else set(only)
+            return {k: z[k] for k in z.files if k in keep}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
         reason = str(exc).splitlines()[0][:200] if str(exc).strip() else exc.__class__.__name__
         raise CaptureError(f"{what} {path} is damaged or not written by this program ({reason}); {fix}") from None

@@ -70,7 +70,7 @@ def check_head_depths(fit_dir: Path, rows: list[dict]) -> str | None:
     from capture.run.stages import iter_fits
 
     depth = {}
-    for f in iter_fits(fit_dir):
+    for f in iter_fits(fit_dir, ("head_t", "status")):
         t = getattr(f, "head_t", None)
         if t is not None and str(getattr(f, "status", "fitted")) == "fitted":
             depth[int(f.frame)] = float(np.asarray(t, np.float64).reshape(-1)[2])

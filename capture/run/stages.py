@@ -111,11 +111,24 @@ def fit_frames(fit_dir: Path) -> list[int]:
     return [int(i) for i in read_json(Path(fit_dir) / DONE_JSON)["frames"]]
 
 
-def iter_fits(fit_dir: Path) -> Iterator[Any]:
-    """The frame fits of a finished fit, in frame order, one chunk in memory at a time."""
+def iter_fits(fit_dir: Path, fields: Iterable[str] | None = None) -> Iterator[Any]:
+    """The frame fits of a finished fit, in frame order, one chunk in memory at a time (``fields``: only
+    these are read, e.g. not the meshes; the others are None)."""
     cls = _frame_fit_class()
     for chunk in read_json(Path(fit_dir) / DONE_JSON)["chunks"]:
-        yield from load_frame_fits(Path(fit_dir) / chunk, cls)
+        yield from load_frame_fits(Path(fit_dir) / chunk, cls, fields)
+
+
+def fits_at(fit_dir: Path, frames: Iterable[int]) -> dict[int, Any]:
+    """The frame fits of ``frames`` (video frame numbers) of a finished fit, reading only the chunks that
+    hold them (a chunk ``frames_<first>.npz`` holds frames from ``first`` to the next chunk's first)."""
+    want = {int(i) for i in frames}
+    chunks = read_json(Path(fit_dir) / DONE_JSON)["chunks"]
+    firsts = [int(Path(c).stem.split("_")[-1]) for c in chunks]
+    need = sorted({max((k for k, f in enumerate(firsts) if f <= i), default=0) for i in want}) if chunks else []
+    cls = _frame_fit_class()
+    return {int(f.frame): f for k in need for f in load_frame_fits(Path(fit_dir) / chunks[k], cls)
+            if int(f.frame) in want}
 
 
 def run_fit_cached(fit_dir: Path, key: dict, total: int, start_fit: Callable[[Path], Iterator[Any]],

@@ -320,11 +320,13 @@ def _to_numpy(v):
     return v
 
 
-def load_frame_fits(path: Path, cls) -> list[Any]:
-    """The frame fits saved by :func:`save_frame_fits`, as instances of the dataclass ``cls``."""
+def load_frame_fits(path: Path, cls, fields: Iterable[str] | None = None) -> list[Any]:
+    """The frame fits saved by :func:`save_frame_fits`, as instances of the dataclass ``cls`` (``fields``:
+    only these are read, the others are None; ``frame`` always)."""
     from capture.io.arrays import load_npz
 
-    g = load_npz(path, "fit cache", "delete it (or rerun with --overwrite) to fit again")
+    only = None if fields is None else {"frame", *fields}
+    g = load_npz(path, "fit cache", "delete it (or rerun with --overwrite) to fit again", only=only)
     n = len(next(iter(g.values()))) if g else 0
     names = {f.name for f in dataclasses.fields(cls)}
     if not n or any(k not in names or v.ndim == 0 or len(v) != n for k, v in g.items()):

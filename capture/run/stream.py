@@ -205,6 +205,7 @@ class StreamResult:
     track: Any                 # LandmarkTrack of the requested frames
     fit_dir: Path
     log: list
+    series: Any = None         # capture.export.report_html.SeriesCollector of the exported fits
 
 
 def stream_take(inputs, out: Path, export_context, formats, export_key: Callable[[Any], dict],
@@ -218,6 +219,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     from capture.detector.pipeline import _segment_path, _write_segment, stack_frames
     from capture.detector.runtime import Lane, TrackState
     from capture.export import EXPORTERS, open_exporters
+    from capture.export.report_html import SeriesCollector
     from capture.fit.process import FitStopped, FitWorker
     from capture.io.video import VideoReader
     from capture.run.stages import DONE_JSON, EXPORT_JSON, FIT_CHUNK, LANDMARKS, fit_dir_for, fit_key, windowed_fit
@@ -369,6 +371,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     write_json(state_path, {"key": None, "status": "running", "files": [], "previous_files": sorted(previous)})
     ctx = replace(export_context, options=replace(export_context.options, overwrite=True))
     want_images = any(EXPORTERS[f].needs_image for f in formats)
+    series = SeriesCollector(inputs.actor.config.n_expressions)
     # the fit's process is forked before any thread of this run starts
     worker = FitWorker(inputs.actor, inputs.landmark_points, inputs.camera.camera, how, threads=cfg.threads,
                        in_process=None if cfg.side_processes else False)
@@ -390,6 +393,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                             image = img
                             break
                     writers.write(ff, image, detection_factory(_lookup(results, by_index, int(ff.frame))))
+                    series.add(ff)         # the report's series, while the fit works on (not read back)
                     clocks["export"].busy += time.perf_counter() - t0
                     bar.advance(1)
                 pipe_line.check()
@@ -448,7 +452,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         {"stage": "export", "status": "done", "seconds": c["export"].busy, "finished_after_s": wall,
          "files": len(rel), "streamed": True},
     ]
-    return StreamResult(track, final, log)
+    return StreamResult(track, final, log, series)
 
 
 def _frames_off_heap() -> None:

@@ -101,7 +101,8 @@ def confident_rms(f: Any, track, row: dict[int, int]) -> float | None:
 def summarise_fit(fit_dir: Path, track) -> list[FrameSummary]:
     row = {int(i): j for j, i in enumerate(track.frame_index)}
     return [FrameSummary(int(f.frame), str(f.status), confident_rms(f, track, row),
-                         _finite(getattr(f, "reprojection_rms_px", None))) for f in iter_fits(fit_dir)]
+                         _finite(getattr(f, "reprojection_rms_px", None)))
+            for f in iter_fits(fit_dir, ("status", "landmarks_fit", "reprojection_rms_px"))]
 
 
 def check_complete(requested: list[int], fitted: list[int]) -> None:
@@ -167,6 +168,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
         return {int(i): Detection(track.points[j], None if track.confidence is None else track.confidence[j],
                                   bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
 
+    collector = None           # the report's series, when the stream collected it
     with sigterm_as_interrupt():
         try:
             streamed = None if cfg.segments else _stream_unless_fitted(inputs, out, log)
@@ -177,7 +179,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
                 res = stream_take(inputs, out, replace(ctx, frame_count=streamed), cfg.formats, export_key,
                                   lambda r: Detection(r.points, r.confidence, bool(r.face_found)), cfg.progress)
                 log[:] = res.log
-                track, fit_dir = res.track, res.fit_dir
+                track, fit_dir, collector = res.track, res.fit_dir, res.series
                 check_reasons = check_detections(track, det.name)
                 frames = fit_frames(fit_dir)
                 dets = detections_of(track)
@@ -238,7 +240,8 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
     implausible = check_head_depths(fit_dir, rows)
     finish_report(report, rows, "reprojection_rms_px", out)
     html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
-                video=Path(cfg.video), camera=cam, image_size=(info.width, info.height), figure_process=figure_process)
+                video=Path(cfg.video), camera=cam, image_size=(info.width, info.height), figure_process=figure_process,
+                collector=collector)
     check_complete(requested, frames)
     if implausible:
         raise CaptureError(implausible)
@@ -296,18 +299,21 @@ def rig_and_features(actor, formats) -> dict:
 
 def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict], error_key: str, unit: str,
                 fps: float, detections: dict | None = None, video: Path | None = None, camera=None,
-                image_size: tuple[int, int] | None = None, figure_process=None) -> Path:
+                image_size: tuple[int, int] | None = None, figure_process=None, collector=None) -> Path:
     """``OUT/report.html`` (:mod:`capture.export.report_html`): the take's plots and its worst frames.
 
     ``figure_process`` (:class:`capture.export.report_figures.FigureProcess`) draws the plots while the
-    thumbnails are drawn here; None: both here."""
+    thumbnails are drawn here (None: both here); ``collector`` (:class:`capture.export.report_html.
+    SeriesCollector`) has seen the take's fits already (None: they are read from ``fit_dir``)."""
     from capture.export.features import face_features
     from capture.export.overlay_draw import FrameRenderer, Topology
     from capture.export.report_html import take_series, thumbnails, worst_frames, write_report_html
+    from capture.run.stages import fits_at
 
     rig = actor.face_rig()
     errors = {int(r["frame"]): r.get(error_key) for r in rows}
-    series = take_series(iter_fits(fit_dir), fps, rig.names, errors, unit, detections)
+    series = (collector.series(fps, rig.names, errors, unit, detections) if collector is not None else
+              take_series(iter_fits(fit_dir), fps, rig.names, errors, unit, detections))
     if figure_process is not None:
         figure_process.submit(series)
     thumbs = []
@@ -317,9 +323,7 @@ def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict],
         feats = face_features(faces, actor.template_vertices, rig.expressions, rig.names)
         renderer = FrameRenderer(Topology.of(faces, feats), camera, image_size, fps,
                                  ("mesh", "contours", "landmarks"))   # the caption says frame and error
-        want = set(worst)
-        fits = {int(f.frame): f for f in iter_fits(fit_dir) if int(f.frame) in want}
-        thumbs = thumbnails(video, worst, fits, detections or {}, renderer)
+        thumbs = thumbnails(video, worst, fits_at(fit_dir, worst), detections or {}, renderer)
     figs = figure_process.result() if figure_process is not None else None
     return write_report_html(out, report, series, thumbs, figs)
 
