@@ -181,23 +181,22 @@ class Actor:
 
     @property
     def model(self) -> AnatomicalFaceModel:
-        if "model" not in self._parts:
-            self._build()
-        return self._parts["model"]
+        return self._built("model")
 
     @property
     def jaw_rot6d(self) -> torch.Tensor:
         """(N-1, 6) the learned jaw transforms of the training shapes."""
-        if "model" not in self._parts:
-            self._build()
-        return self._parts["jaw_rot6d"]
+        return self._built("jaw_rot6d")
 
     @property
     def jaw_t(self) -> torch.Tensor:
         """(N-1, 3) mm."""
+        return self._built("jaw_t")
+
+    def _built(self, part: str):
         if "model" not in self._parts:
             self._build()
-        return self._parts["jaw_t"]
+        return self._parts[part]
 
     def _build(self) -> None:
         import torch

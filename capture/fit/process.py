@@ -2,7 +2,7 @@
 
 :func:`capture.fit.stream.fit_take_stream` is Python-heavy (many small torch ops per step); in a thread
 of ``capture run``'s pipeline it ran 1.5x slower than alone (the GIL, and the run's fixed mmap threshold:
-:func:`_heap_for_compute`). :class:`FitWorker` runs it in a child process instead, fed one row of
+:mod:`capture.io.heap`). :class:`FitWorker` runs it in a child process instead, fed one row of
 landmarks at a time through a pipe, with the same results (the child runs the same code on the same
 numbers; its window cache is the same folder). The per-frame PnP of the head poses runs in the parent
 (:meth:`FitWorker.feed`), beside decoding and detection: the same calls in the same order.
@@ -60,7 +60,9 @@ def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_po
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         for c in parent_ends:          # forked copies: the parent's ends must close only in the parent
             c.close()
-        _heap_for_compute()
+        from capture.io.heap import COMPUTE, set_malloc_thresholds
+
+        set_malloc_thresholds(*COMPUTE)   # not the run's: its 1 MiB mmap threshold slows the fit 1.4x
     import torch
 
     from capture.fit.stream import fit_take_stream, pnp_model_points
@@ -135,25 +137,6 @@ def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_po
         if not in_thread:
             out_conn.close()
             ready_conn.close()
-
-
-def _heap_for_compute() -> None:
-    """Undo, in the child, the parent's fixed 1 MiB mmap threshold (``capture.run.stream._frames_off_heap``).
-
-    It keeps the parent's memory flat while it decodes frames of MBs, but the fit allocates tensors of
-    several MB at every step: mapped and unmapped each time, their pages faulted in anew, the fit ran
-    1.4x slower (7.2 -> 10 s for 300 frames, most of it system time). Fixed thresholds as large as
-    glibc's dynamic ones can grow to let the heap reuse them. No-op off glibc.
-    """
-    import ctypes
-    import ctypes.util
-
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.mallopt(-3, 32 << 20)     # M_MMAP_THRESHOLD: glibc's largest dynamic value on 64-bit
-        libc.mallopt(-1, 64 << 20)     # M_TRIM_THRESHOLD: twice that, as glibc keeps them
-    except (OSError, AttributeError):
-        pass
 
 
 class FitWorker:

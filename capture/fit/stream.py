@@ -17,8 +17,8 @@ and solves each window as soon as the frames it depends on have arrived:
 
 Landmarks: each item of the iterator is ``(points (L, 2) px, weights (L,) in [0, 1] or None, face_found)``;
 the weights are treated as :func:`capture.fit.take.fit_take` treats a row of its ``weights``. An item may
-also be ``(points, weights, face_found, pose)`` with the rows cleaned by :func:`capture.fit.init.clean_row` and the head
-pose that :class:`capture.fit.init.PnPChain` gave for it (``(R, t)`` or None), computed by the caller
+also be ``(points, weights, face_found, pose)`` with the rows cleaned by :func:`capture.fit.init.clean_row`
+and the head pose that :class:`capture.fit.init.PnPChain` gave for it (``(R, t)`` or None), computed by the caller
 over the same rows in the same order (:mod:`capture.fit.process` does so beside detection).
 """
 
@@ -56,8 +56,7 @@ class StreamLandmarkSource:
                  pnp: PnPSettings, K_t: torch.Tensor, dist_t: torch.Tensor, dtype, device, causal: bool = False,
                  n_landmarks: int | None = None):
         self.it = iter(frames)
-        self.model = model_points
-        self.K, self.dist, self.pnp = K, dist, pnp
+        self.pnp = pnp
         self.K_t, self.dist_t = K_t, dist_t
         self.dtype, self.device = dtype, device
         self.causal = causal

@@ -17,7 +17,7 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
 
 Queues hold at most :data:`QUEUE_FRAMES` frames; the decoder works at most one group of detection
 segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector and frames are
-allocated off the heap (:func:`_frames_off_heap`), so memory stays flat in the take's length (about
+allocated off the heap (:mod:`capture.io.heap`), so memory stays flat in the take's length (about
 1.1 GB peak at 1920x1080, ``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
 event: an error or an interrupt in any stage stops all of them (a fit window being solved finishes
 first, and is kept), and the error is raised in the main thread (where SIGTERM and Ctrl-C arrive; the
@@ -45,6 +45,7 @@ from typing import Any, Callable
 import numpy as np
 
 from capture.io.atomic import write_json
+from capture.io.heap import FRAMES_OFF_HEAP, set_malloc_thresholds
 from capture.io.errors import CaptureError
 from capture.run.progress import StageProgress
 from capture.run.store import array_digest, digest, read_json, save_frame_fits
@@ -235,7 +236,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     wanted = set(plan.wanted)
     n_frames = len(plan.wanted)
 
-    _frames_off_heap()
+    set_malloc_thresholds(*FRAMES_OFF_HEAP)
     pipe_line = Pipeline()
     decoded = pipe_line.pipe(1)
     landmarks = pipe_line.pipe(LANDMARK_QUEUE_FRAMES)
@@ -453,27 +454,6 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
          "files": len(rel), "streamed": True},
     ]
     return StreamResult(track, final, log, series)
-
-
-def _frames_off_heap() -> None:
-    """Serve large allocations (decoded frames: MBs each) by mmap, returned to the system when freed.
-
-    glibc raises its mmap threshold after the first large free, so later frames come from the heaps of
-    the threads that decode and detect, which fragment: the resident memory then grew with the take's
-    length (1.1 GB at 75 frames of 1080p, 1.5 GB at 300). A fixed threshold keeps it flat. No-op off glibc.
-    """
-    import ctypes
-    import ctypes.util
-
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.mallopt(-3, 1 << 20)      # M_MMAP_THRESHOLD = 1 MiB (fixed: no dynamic adjustment)
-        libc.mallopt(-1, 64 << 20)     # M_TRIM_THRESHOLD: fixing the first leaves this at 128 KB, and a
-                                       # fit in this process (capture batch) then gave memory back and
-                                       # faulted it in again at every step (the fit alone 1.2x slower, a
-                                       # 300-frame take 15.2 -> 14.2 s; peak memory the same)
-    except (OSError, AttributeError):
-        pass
 
 
 def _lookup(results: list, cache: dict, frame: int):
