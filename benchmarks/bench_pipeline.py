@@ -12,7 +12,9 @@ a fresh child process on a fresh output folder so nothing is cached:
 * ``detector only``: decode + detect of the whole take (``capture.detector.detect_video``, no cache), 2 cores;
 * ``run 2 cores``: ``capture run --formats npz,usd`` (the default exports of the issue), both cores;
 * ``run 1 core``: the same pinned to one core (``os.sched_setaffinity``);
-* ``live``: ``capture live`` on the take played at its frame rate (25 fps): frames dropped, lag;
+* ``live N``: ``capture live`` on the take played at N frames/s (``--live-fps``, default its own 25 and a
+  faster 30 and 40): frames fitted per second of the source (``fps_sustained``: N when nothing is dropped),
+  frames dropped and why, lag, latency;
 * start-up: ``capture --help``, and ``capture run`` from launch until ``run.json`` is written
   (inputs checked, the stages about to start).
 
@@ -217,12 +219,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--work", help="folder kept between runs (take, actor, detector); default: a temporary one")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results"))
     ap.add_argument("--no-live", action="store_true")
+    ap.add_argument("--live-fps", default="25,30,40", help="paces of capture live's file source (frames/s)")
     ap.add_argument("--memory", action="store_true", help="only: peak memory of capture run at 1920x1080 (all "
                     "exports but the overlay) on the take and on it played 4 times")
     ap.add_argument("--quick", action="store_true", help="check that it runs: 24 frames at 320x240, 1 repeat")
     args = ap.parse_args(argv)
     if args.quick:
-        args.frames, args.size, args.repeats = 24, "320x240", 1
+        args.frames, args.size, args.repeats, args.live_fps = 24, "320x240", 1, "25"
     tmp = None
     if args.work is None:
         tmp = tempfile.TemporaryDirectory()
@@ -269,16 +272,18 @@ def _measure(args, work: Path) -> dict:
                                               "inner_s": rep["seconds_total"], "start_s": res["watch_s"],
                                               "stages": {st["stage"]: round(st["seconds"], 2) for st in rep["stages"]}})
             shutil.rmtree(out, ignore_errors=True)
-        if not args.no_live:
+        for pace in ([] if args.no_live else [float(x) for x in args.live_fps.split(",")]):
             out = work / f"live_{r}"
             shutil.rmtree(out, ignore_errors=True)
             res = _child([py, "-m", "capture.cli", "live", str(s["video"]), "--actor", str(s["actor"]), "--camera",
                           str(s["camera"]), "--detector", str(s["detector"]), "--lag", str(args.lag), "--out",
-                          str(out), "--json", "none", "--no-progress"], both)
+                          str(out), "--json", "none", "--no-progress", "--fps", f"{pace:g}"], both)
             rep = json.loads((out / "live.json").read_text())
-            rows.setdefault("live", []).append({"wall_s": res["wall_s"], "frames": rep["frames"]["received"],
-                                                "inner_s": rep["seconds"], "fps": rep["fps_processed"],
-                                                "dropped": rep["frames"]["dropped"], "max_lag": rep["lag"]["max_frames"]})
+            rows.setdefault(f"live {pace:g}", []).append({
+                "wall_s": res["wall_s"], "frames": rep["frames"]["received"], "inner_s": rep["seconds"],
+                "fps": rep["fps_sustained"], "fps_whole_run": rep["fps_processed"], "dropped": rep["frames"]["dropped"],
+                "dropped_why": rep["frames"]["dropped_why"], "max_lag": rep["lag"]["max_frames"],
+                "latency_median_s": rep["latency_s"]["median"], "latency_p95_s": rep["latency_s"]["p95"]})
             shutil.rmtree(out, ignore_errors=True)
         t0 = time.perf_counter()
         _child([py, "-m", "capture.cli", "--help"], both)
@@ -300,9 +305,11 @@ def _measure(args, work: Path) -> dict:
         "run_peak_rss_mb": max(x["peak_rss_mb"] for x in rows["run 2 cores"]),
         "fit_process_peak_rss_mb": max((x["fit_process_peak_rss_mb"] or 0.0) for x in rows["run 2 cores"]),
     }
-    if "live" in rows:
-        summary.update(live_fps=med("live", "fps"), live_dropped=[x["dropped"] for x in rows["live"]],
-                       live_max_lag=max(x["max_lag"] for x in rows["live"]))
+    for name in [k for k in rows if k.startswith("live ")]:
+        key = name.replace(" ", "_")
+        summary.update({f"{key}_fps_sustained": med(name, "fps"), f"{key}_dropped": [x["dropped"] for x in rows[name]],
+                        f"{key}_max_lag": max(x["max_lag"] for x in rows[name]),
+                        f"{key}_latency_p95_s": med(name, "latency_p95_s")})
     print(f"{n} frames {args.size}, {args.repeats} interleaved repeats (medians); load average before/after: "
           f"{loads[0][0]:.2f} / {loads[-1][0]:.2f}")
     for name, v in rows.items():

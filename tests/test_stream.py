@@ -65,6 +65,28 @@ def test_streamed_fit_equals_the_whole_take_fit(take):
     assert [f.status for f in got][4:6] == ["bridged", "bridged"]
 
 
+def test_a_causal_stream_that_ends_on_a_window_border_without_overlap(take):
+    """capture live with --lag 1 has windows of 2 frames and no overlap: a take whose frames fill its last
+    window exactly gave "no frames to fit" (the window after it was empty). Every frame must be fitted."""
+    from calib.camera_io import read_camera
+    from capture.actor.package import load_actor
+    from capture.detector import embedded_points, read_embedding
+    from capture.fit.stream import fit_take_stream
+    from capture.fit.take import WindowedFit
+
+    _, actor_dir, take_dir = take
+    actor = load_actor(str(actor_dir))
+    tp = embedded_points(read_embedding(actor.path, "synthetic_dense_100", actor.template), actor.template)
+    with np.load(take_dir / "truth_landmarks.npz") as z:
+        pts = z["points_2d"].astype(np.float64)
+    cam = read_camera(take_dir / "camera.json")
+    for window in (2, 3, 4):                      # 12 frames: every one ends on a border
+        got = list(fit_take_stream(actor, ((pts[j], np.ones(len(tp)), True) for j in range(N_FRAMES)), tp, cam,
+                                   WindowedFit("default", window=window, overlap=0), causal=True))
+        assert [f.frame for f in got] == list(range(N_FRAMES))
+        assert all(f.status == "fitted" and np.isfinite(f.vertices).all() for f in got)
+
+
 def test_live_keeps_its_lag_and_equals_the_offline_run_of_the_same_frames(take, tmp_path):
     """The take played at its frame rate: every frame is final at most --lag frames after it arrived (JSON
     line per frame over UDP, and live.json); frames are dropped rather than queued when the pipeline is busy,
@@ -106,6 +128,91 @@ def test_live_keeps_its_lag_and_equals_the_offline_run_of_the_same_frames(take, 
     m = lines[-1]
     with np.load(tmp_path / "live" / "params.npz") as a:
         np.testing.assert_allclose(m["head_t_mm"], a["head_t_mm"][-1], atol=1e-6)   # the line is the take's frame
+
+
+class _SlowReads:
+    """A file source whose ``read`` takes ``seconds`` (a slow decoder or a starved thread); ``grab`` does not."""
+
+    def __init__(self, path: str, seconds: float):
+        import cv2
+
+        self.cap, self.seconds = cv2.VideoCapture(path), seconds
+
+    def read(self):
+        import time
+
+        time.sleep(self.seconds)
+        return self.cap.read()
+
+    def grab(self):
+        return self.cap.grab()
+
+    def release(self):
+        self.cap.release()
+
+
+def _check_counts(live: dict, lag: int) -> None:
+    fr = live["frames"]
+    assert fr["processed"] + fr["dropped"] == fr["received"] == N_FRAMES
+    assert fr["dropped"] == sum(fr["dropped_why"].values())
+    assert len(fr["processed_frames"]) == fr["processed"] and live["lag"]["max_frames"] <= lag
+    assert live["fps_sustained"] == pytest.approx(fr["processed"] / live["source_seconds"])
+
+
+def test_live_skips_a_files_frames_it_reads_too_late(take, tmp_path, monkeypatch):
+    """A file plays as a camera delivers it: when reading a frame takes 2.4 frame periods, the frames whose
+    time has passed by the next read are skipped and counted as late, instead of every frame being read
+    later and later (before, none was dropped and the take lagged further behind the source at each
+    frame). Frame i is read at about i / fps, so about every other frame is late."""
+    import capture.run.live as live_mod
+    from capture.run.live import LiveConfig, run_live
+
+    _, actor, take_dir = take
+    fps = 20.0
+    real_open = live_mod.open_source
+
+    def slow_source(source):
+        cap, is_file, _, label = real_open(source)
+        cap.release()
+        return _SlowReads(source, 2.4 / fps), is_file, fps, label
+
+    monkeypatch.setattr(live_mod, "open_source", slow_source)
+    cfg = LiveConfig(source=str(take_dir / "take.mp4"), actor=str(actor), camera=take_dir / "camera.json",
+                     out=tmp_path / "live", lag=3, json_to="none", iterations=10, queue_frames=N_FRAMES)
+    live = run_live(cfg)
+    _check_counts(live, 3)
+    assert live["frames"]["dropped_why"]["late"] >= 3
+    assert live["source_seconds"] == pytest.approx(N_FRAMES / fps)
+    with np.load(tmp_path / "live" / "params.npz") as a:
+        assert a["frame_index"].tolist() == live["frames"]["processed_frames"]
+
+
+def test_live_drops_frames_while_the_fit_is_two_windows_behind(take, tmp_path, monkeypatch):
+    """The fit process takes rows as they come; when its results come back slowly (here 0.6 s per frame after
+    the first, at a source of 8 frames/s), the capture drops the frames that would wait beyond two windows
+    (counted as fit_busy) instead of queueing them in the fit process without bound (before, none was
+    dropped for it and the latency grew with every frame)."""
+    import time
+
+    from capture.fit.process import FitWorker
+    from capture.run.live import LiveConfig, run_live
+
+    _, actor, take_dir = take
+    real_results = FitWorker.results
+
+    def slow_results(self, stop=None):
+        for k, item in enumerate(real_results(self, stop)):
+            if k:
+                time.sleep(0.6)
+            yield item
+
+    monkeypatch.setattr(FitWorker, "results", slow_results)
+    lag = 1                                   # windows of 2 frames: at most 2 * 2 + 1 admitted rows ahead
+    cfg = LiveConfig(source=str(take_dir / "take.mp4"), actor=str(actor), camera=take_dir / "camera.json",
+                     out=tmp_path / "live", lag=lag, fps=8.0, json_to="none", iterations=10, queue_frames=1)
+    live = run_live(cfg)
+    _check_counts(live, lag)
+    assert live["frames"]["dropped_why"]["fit_busy"] >= 1
 
 
 def test_obj_vertex_text_is_pythons_formatting():

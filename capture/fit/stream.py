@@ -134,11 +134,13 @@ class StreamLandmarkSource:
         return R[s:e], t[s:e]
 
     # ---------------------------------------------------------------- what _run_windows calls
-    def window(self, s: int, window: int) -> _Window:
+    def window(self, s: int, window: int) -> _Window | None:
         while not self._ready(s + window) and self._pull():
             pass
         if self.ended and self.n == 0:
             raise ValueError("no frames to fit")
+        if self.ended and s >= self.n:   # the take ended on the border of a window without overlap: done
+            return None
         e = min(self.n, s + window) if self.ended else s + window
         if e <= s:
             raise ValueError("no frames to fit")

@@ -372,6 +372,9 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
     done = 0
     while True:
         win = source.window(s, window)
+        if win is None:   # a stream that ended on the previous window's border (no overlap: nothing held)
+            assert not held
+            return
         J = win.end - win.start
         key = hashlib.sha1(f"{prev_key}|{win.start}:{win.end}|{win.digest}".encode()).hexdigest()
         with _num_threads(threads):

@@ -3,8 +3,12 @@
 SOURCE is a camera index (``0``), a stream URL FFmpeg reads (``rtsp://...``, ``udp://...``) or a video
 file, which is played at its frame rate (as a camera would deliver it). Threads::
 
-    capture    reads frames at the source's pace; a frame that finds the detector busy with a full
-               queue is dropped (counted), so the pipeline never falls behind the source
+    capture    reads frames at the source's pace and drops (and counts) a frame rather than fall behind
+               the source: one that finds the detector's queue full (``detector_busy``), or the fit
+               more than two windows behind (``fit_busy``: the fit process takes rows as they come, so
+               without this a fit slower than the source would queue them there and the latency grow).
+               A file plays as a camera delivers it: a frame whose time has passed by a whole frame
+               before it could be read is skipped (``late``), as a camera's newer frame replaces it
     detect     Detector.detect one frame at a time, carrying the track from frame to frame
     feed, fit  capture.fit.stream.fit_take_stream in a process of its own (capture.fit.process), causal:
                windows of lag + 1 frames overlapping by ``overlap``, head poses from past frames only; a
@@ -24,7 +28,10 @@ JSON line (one per frame, in frame order; lengths mm, OpenCV camera axes, ``x_ca
 ``lag_frames`` how many newer frames the fit had received then. ``expressions`` are the expression
 weights (the mean over the landmarks of the coefficient field; with the default 2D fit it is the same
 everywhere). The take (``--out``) gets the exports of ``--formats`` and ``live.json``: frames received,
-processed and dropped, lag and latency figures, frames per second, settings.
+processed and dropped, lag and latency figures, settings, and two rates: ``fps_sustained``, frames
+fitted per second of the source (the source's pace when nothing was dropped: what a camera of that
+rate can expect), and ``fps_processed``, frames fitted per second of the whole run (its start and the
+last ``lag`` frames' tail included).
 
 :func:`run_live` with ``realtime=False`` reads every frame as fast as the pipeline takes them (never
 dropping) and, with ``only_frames``, only those source frames: the offline run a live one is compared with.
@@ -217,7 +224,12 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
     lms = pl.pipe(max(1, cfg.queue_frames))      # small: a busy fit makes the capture drop, not queue
     fits = pl.pipe(8)
     clocks = {k: StageClock() for k in ("capture", "detect", "feed", "fit", "export")}
-    stats = {"received": 0, "dropped": 0, "processed": 0}
+    stats = {"received": 0, "dropped": 0, "processed": 0, "admitted": 0, "source_s": 0.0}
+    why = {"late": 0, "detector_busy": 0, "fit_busy": 0}     # the dropped frames, by reason
+    results: list = []                    # the detections fed to the fit, in fit order
+    position: list[int] = []              # their source frames
+    fit_read = [0]                        # rows the fit had taken at its latest result (of the admitted frames)
+    backlog_max = 2 * window + cfg.queue_frames
     t_src: dict[int, float] = {}          # source frame -> capture time
     only = None if cfg.only_frames is None else set(int(i) for i in cfg.only_frames)
     t_start = time.perf_counter()
@@ -232,17 +244,33 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
                     delay = t_start + i / fps - time.perf_counter()
                     if delay > 0:
                         time.sleep(delay)
+                    elif -delay >= 1.0 / fps:     # a frame late: a camera would have delivered the next one
+                        if not cap.grab():
+                            break
+                        stats["received"] += 1
+                        stats["dropped"] += 1
+                        why["late"] += 1
+                        stats["source_s"] = (i + 1) / fps
+                        i += 1
+                        continue
                 ok, frame = cap.read()
                 if not ok or frame is None:
                     break
             t = (i / fps) if is_file else time.perf_counter() - t_start
             stats["received"] += 1
+            stats["source_s"] = (i + 1) / fps if is_file else time.perf_counter() - t_start
             if only is None or i in only:
                 if cfg.realtime:
                     try:
-                        frames_in.put_nowait((i, t, frame))
+                        if stats["admitted"] - fit_read[0] >= backlog_max:
+                            stats["dropped"] += 1
+                            why["fit_busy"] += 1
+                        else:
+                            frames_in.put_nowait((i, t, frame))
+                            stats["admitted"] += 1
                     except queue.Full:
                         stats["dropped"] += 1
+                        why["detector_busy"] += 1
                 else:
                     while not pl.stop.is_set():
                         try:
@@ -277,9 +305,6 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
             lms.put(r)
         lms.put(_END)
 
-    results: list = []
-    position: list[int] = []
-
     def feed():
         def rows():
             for r in lms:
@@ -296,6 +321,7 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
         try:
             for ff, rows_read in worker.results(pl.stop):
                 j = int(ff.frame)
+                fit_read[0] = rows_read
                 fits.put((ff, j, rows_read - 1 - j, time.perf_counter() - t_start))
         except FitStopped:
             raise _Stopped from None
@@ -308,10 +334,10 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
     # the fit's process is forked before any thread of this pipeline starts
     worker = FitWorker(actor, points, camera.camera, how, causal=True, threads=cfg.threads)
     try:
-        worker.wait_ready()        # the networks are built before the source plays: no frame dropped for that
-        warm_s = time.perf_counter() - t_start
-        t_start = time.perf_counter()
-        with open_exporters(cfg.formats, out, ctx) as writers:
+        with open_exporters(cfg.formats, out, ctx) as writers:   # (USD's import too) before the source plays
+            worker.wait_ready()    # the networks are built before the source plays: no frame dropped for that
+            warm_s = time.perf_counter() - t_start
+            t_start = time.perf_counter()
             pl.start("capture", capture, clocks["capture"])
             pl.start("detect", detect, clocks["detect"])
             pl.start("feed", feed, clocks["feed"])
@@ -351,11 +377,13 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
         "settings": {"lag": cfg.lag, "window": window, "overlap": overlap, "fps": fps, "realtime": cfg.realtime,
                      "formats": list(cfg.formats), "fit": settings.to_dict(), "poses": "causal (past frames only)"},
         "frames": {"received": stats["received"], "processed": stats["processed"], "dropped": stats["dropped"],
-                   "processed_frames": [int(p) for p in position]},
+                   "dropped_why": why, "processed_frames": [int(p) for p in position]},
         "lag": {"max_frames": int(max(lags)) if lags else None, "mean_frames": float(np.mean(lags)) if lags else None},
         "latency_s": {"median": float(np.median(latencies)) if latencies else None,
                       "p95": float(np.percentile(latencies, 95)) if latencies else None},
         "seconds": wall, "fps_processed": stats["processed"] / wall if wall > 0 else None,
+        "source_seconds": stats["source_s"], "fps_source": fps,
+        "fps_sustained": stats["processed"] / stats["source_s"] if stats["source_s"] > 0 else None,
         "fit_warmup_s": warm_s,    # the fit process building the networks, before the source played
         "busy_seconds": {k: round(c.busy, 3) for k, c in clocks.items()},
         "outputs": sorted(str(Path(p).name) for p in writers.paths),
@@ -363,6 +391,6 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
     write_json(out / "live.json", summary)
     if say:
         say(f"capture live {label}: {stats['processed']} frames fitted of {stats['received']} received, "
-            f"{stats['dropped']} dropped (the pipeline was busy), {summary['fps_processed']:.1f} frames/s, "
-            f"lag at most {summary['lag']['max_frames']} frames, take in {out}")
+            f"{stats['dropped']} dropped (" + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in why.items()) + "), "
+            f"{summary['fps_sustained'] or 0:.1f} frames/s of the source's {fps:g}, lag at most {summary['lag']['max_frames']} frames, take in {out}")
     return summary
