@@ -172,3 +172,28 @@ def test_arkit_mapping_and_timecode():
     assert "MouthSmileRight" not in m and len(m) == 3
     assert timecode(0, 25.0) == "00:00:00:00.000" and timecode(25 * 3661 + 7, 25.0) == "01:01:01:07.000"
     assert timecode(30, 29.97) == "00:00:01:00.000"
+
+
+def test_head_and_jaw_angles_equal_scipys_zyx_euler_angles():
+    """The closed-form (yaw, pitch, roll) of head and jaw rotations: built from known angles they come back
+    (to 1e-9 deg), on random rotations they equal scipy's ``as_euler("ZYX")`` (reordered, pitch negated),
+    and a rotation that is not finite gives NaN without a warning."""
+    import warnings
+
+    from scipy.spatial.transform import Rotation
+
+    from capture.export.rig import R_FRONT, head_angles_deg, jaw_angles_deg
+
+    rng = np.random.default_rng(0)
+    ang = np.stack([rng.uniform(-85, 85, 200), rng.uniform(-170, 170, 200), rng.uniform(-179, 179, 200)], 1)
+    R = Rotation.from_euler("ZYX", np.stack([ang[:, 2], ang[:, 0], -ang[:, 1]], 1), degrees=True).as_matrix()
+    np.testing.assert_allclose(jaw_angles_deg(R), ang, atol=1e-9)
+    np.testing.assert_allclose(head_angles_deg(R_FRONT @ R), ang, atol=1e-9)
+    Rr = Rotation.random(500, random_state=1).as_matrix()
+    ref = Rotation.from_matrix(Rr).as_euler("ZYX", degrees=True)
+    np.testing.assert_allclose(jaw_angles_deg(Rr), np.stack([ref[:, 1], -ref[:, 2], ref[:, 0]], 1), atol=1e-7)
+    bad = np.stack([np.eye(3), np.full((3, 3), np.nan)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = jaw_angles_deg(bad)
+    assert np.isnan(out[1]).all() and np.allclose(out[0], 0)

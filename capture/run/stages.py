@@ -119,15 +119,16 @@ def iter_fits(fit_dir: Path, fields: Iterable[str] | None = None) -> Iterator[An
         yield from load_frame_fits(Path(fit_dir) / chunk, cls, fields)
 
 
-def fits_at(fit_dir: Path, frames: Iterable[int]) -> dict[int, Any]:
+def fits_at(fit_dir: Path, frames: Iterable[int], fields: Iterable[str] | None = None) -> dict[int, Any]:
     """The frame fits of ``frames`` (video frame numbers) of a finished fit, reading only the chunks that
-    hold them (a chunk ``frames_<first>.npz`` holds frames from ``first`` to the next chunk's first)."""
+    hold them (a chunk ``frames_<first>.npz`` holds frames from ``first`` to the next chunk's first) and,
+    with ``fields``, only those members (the others are None)."""
     want = {int(i) for i in frames}
     chunks = read_json(Path(fit_dir) / DONE_JSON)["chunks"]
     firsts = [int(Path(c).stem.split("_")[-1]) for c in chunks]
     need = sorted({max((k for k, f in enumerate(firsts) if f <= i), default=0) for i in want}) if chunks else []
     cls = _frame_fit_class()
-    return {int(f.frame): f for k in need for f in load_frame_fits(Path(fit_dir) / chunks[k], cls)
+    return {int(f.frame): f for k in need for f in load_frame_fits(Path(fit_dir) / chunks[k], cls, fields)
             if int(f.frame) in want}
 
 

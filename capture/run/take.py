@@ -60,6 +60,8 @@ def skip_reasons(track, detector_name: str) -> dict[int, str]:
 
 
 CONFIDENT = 0.5
+#: What the report's worst-frame thumbnails read of those frames' fits (not the per-point coefficients).
+THUMBNAIL_FIELDS = ("vertices", "landmarks_fit", "status", "reprojection_rms_px", "error3d_mm")
 
 
 def _finite(v) -> float | None:
@@ -323,7 +325,7 @@ def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict],
         feats = face_features(faces, actor.template_vertices, rig.expressions, rig.names)
         renderer = FrameRenderer(Topology.of(faces, feats), camera, image_size, fps,
                                  ("mesh", "contours", "landmarks"))   # the caption says frame and error
-        thumbs = thumbnails(video, worst, fits_at(fit_dir, worst), detections or {}, renderer)
+        thumbs = thumbnails(video, worst, fits_at(fit_dir, worst, THUMBNAIL_FIELDS), detections or {}, renderer)
     figs = figure_process.result() if figure_process is not None else None
     return write_report_html(out, report, series, thumbs, figs)
 
