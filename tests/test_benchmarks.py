@@ -209,6 +209,19 @@ def test_bench_outofspan_quick(tmp_path):
     assert (tmp_path / "outofspan_quick.json").is_file()
 
 
+@needs_ict
+def test_bench_outofspan_limits_quick():
+    from benchmarks.bench_outofspan_limits import main
+
+    res = main(["--quick"])
+    rows = res["solutions"]
+    assert len(rows) == 4 and all(np.isfinite(r["mean_mm"]) and r["mean_mm"] > 0 for r in rows.values())
+    for r in rows.values():
+        assert r["landmarks"] > 0 and r["priors"] >= 0 and r["total"] == pytest.approx(r["landmarks"] + r["priors"])
+    shares = res["held_out_mouth_motion_shares"]
+    assert all(0 < v < 1 for v in shares.values())
+
+
 def test_bench_actor_quick(tmp_path):
     from benchmarks.bench_actor import main
 

@@ -38,9 +38,10 @@ class PnPSettings:
         return asdict(self)
 
 
-def _usable(model_points: np.ndarray, points2d: np.ndarray, weights: np.ndarray, settings: PnPSettings
-            ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The PnP's ``(object (N, 3), image (N, 2))`` float64 points: finite, confident enough; None when too few."""
+def _pnp_inputs(model_points: np.ndarray, points2d: np.ndarray, weights: np.ndarray, K: np.ndarray, dist: np.ndarray,
+                settings: PnPSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The PnP's ``(object (N, 3), image (N, 2), K, dist)`` in float64, the points finite and confident
+    enough; None when too few."""
     ok = np.isfinite(points2d).all(1) & np.isfinite(weights) & (weights > 0)
     if ok.sum() < settings.min_points:
         return None
@@ -48,7 +49,8 @@ def _usable(model_points: np.ndarray, points2d: np.ndarray, weights: np.ndarray,
     if ok.sum() < settings.min_points:
         return None
     return (np.ascontiguousarray(model_points[ok], dtype=np.float64),
-            np.ascontiguousarray(points2d[ok], dtype=np.float64))
+            np.ascontiguousarray(points2d[ok], dtype=np.float64), np.asarray(K, np.float64),
+            np.asarray(dist, np.float64))
 
 
 def pnp_frame(model_points: np.ndarray, points2d: np.ndarray, weights: np.ndarray, K: np.ndarray,
@@ -60,12 +62,10 @@ def pnp_frame(model_points: np.ndarray, points2d: np.ndarray, weights: np.ndarra
         model_points: ``(L, 3)`` head-frame points (mm); points2d ``(L, 2)`` px (NaN = missing);
         weights ``(L,)`` confidence; K ``(3, 3)``; dist OpenCV coefficients; guess ``(rvec, tvec)``.
     """
-    pts = _usable(model_points, points2d, weights, settings)
+    pts = _pnp_inputs(model_points, points2d, weights, K, dist, settings)
     if pts is None:
         return None
-    obj, img = pts
-    K = np.asarray(K, np.float64)
-    dist = np.asarray(dist, np.float64)
+    obj, img, K, dist = pts
     use_guess = guess is not None
     rvec0 = guess[0].copy() if use_guess else None
     tvec0 = guess[1].copy() if use_guess else None
@@ -100,12 +100,10 @@ def track_frame(model_points: np.ndarray, points2d: np.ndarray, weights: np.ndar
     points an expression moves away from the neutral model, and the poses get worse (measured on a
     synthetic take of the demo actor: 0.24 deg mean error with this gate, 0.34 with 1.5x, 0.43 with 2x,
     0.29 for RANSAC on every frame)."""
-    pts = _usable(model_points, points2d, weights, settings)
+    pts = _pnp_inputs(model_points, points2d, weights, K, dist, settings)
     if pts is None:
         return None
-    obj, img = pts
-    K = np.asarray(K, np.float64)
-    dist = np.asarray(dist, np.float64)
+    obj, img, K, dist = pts
     need = max(settings.min_points, min_inliers)
     near = _inliers(obj, img, guess[0], guess[1], K, dist, settings.ransac_px)
     if near.sum() < need:
@@ -167,9 +165,8 @@ class PnPChain:
             if res is None and self.guess is not None:  # a bad guess must not lose the frame
                 res = pnp_frame(self.model, p, w, self.K, self.dist, s, None)
             if res is not None and s.track_keep > 0:
-                pts = _usable(self.model, p, w, s)
-                self.inliers = int(_inliers(*pts, cv2.Rodrigues(res[0])[0], res[1], np.asarray(self.K, np.float64),
-                                            np.asarray(self.dist, np.float64), s.ransac_px).sum())
+                obj, img, K, dist = _pnp_inputs(self.model, p, w, self.K, self.dist, s)
+                self.inliers = int(_inliers(obj, img, cv2.Rodrigues(res[0])[0], res[1], K, dist, s.ransac_px).sum())
         if res is not None:
             self.guess = (cv2.Rodrigues(res[0])[0], res[1].reshape(3, 1).copy())
         self.seconds += time.perf_counter() - t0

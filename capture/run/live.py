@@ -390,7 +390,8 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
     }
     write_json(out / "live.json", summary)
     if say:
+        reasons = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in why.items())
         say(f"capture live {label}: {stats['processed']} frames fitted of {stats['received']} received, "
-            f"{stats['dropped']} dropped (" + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in why.items()) + "), "
-            f"{summary['fps_sustained'] or 0:.1f} frames/s of the source's {fps:g}, lag at most {summary['lag']['max_frames']} frames, take in {out}")
+            f"{stats['dropped']} dropped ({reasons}), {summary['fps_sustained'] or 0:.1f} frames/s of the "
+            f"source's {fps:g}, lag at most {summary['lag']['max_frames']} frames, take in {out}")
     return summary
