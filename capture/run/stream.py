@@ -5,6 +5,7 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
 
     decode thread   VideoReader: the frames of the detection segments not in the cache     -> (segment group, frames)
     detect thread   cached segments read, the others detected (Detector.run_lanes)         -> FrameLandmarks per frame
+                    (these two run ahead of the fit and yield it the CPU: capture.io.priority)
     feed thread     the landmarks checked (capture.run.checks), their head pose by PnP
                     (capture.fit.init.PnPChain), sent to the fit process
     fit process     capture.fit.stream.fit_take_stream: each window solved as soon as      -> FrameFit per frame
@@ -46,6 +47,7 @@ import numpy as np
 
 from capture.io.atomic import write_json
 from capture.io.heap import FRAMES_OFF_HEAP, set_malloc_thresholds
+from capture.io.priority import background_thread
 from capture.io.errors import CaptureError
 from capture.run.progress import StageProgress
 from capture.run.store import array_digest, digest, read_json, save_frame_fits
@@ -253,6 +255,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     stage_dir.mkdir(parents=True, exist_ok=True)
 
     def decode():
+        background_thread()          # it runs ahead of the fit, which sets the pace (capture.io.priority)
         with VideoReader(cfg.video) as reader:
             for group in plan.groups:
                 while not decoded.q.empty():    # one group ahead of the detector, not two: memory
@@ -267,6 +270,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         decoded.put(_END)
 
     def detect():
+        background_thread()
         groups = iter(decoded)
         done: dict[int, list] = {}
         for s in plan.starts:
