@@ -56,10 +56,10 @@ class ActorAtPoints:
         a = model(points) if evaluated is None else evaluated
         rotvec = shift = None
         if jaw_rot6d is not None and jaw_t is not None:
-            from scipy.spatial.transform import Rotation
+            from models.quaternion import rotvec_from_matrix
 
             R = rot6d_to_matrix(jaw_rot6d.detach().double()).cpu().numpy()
-            rotvec = torch.as_tensor(Rotation.from_matrix(R).as_rotvec()).to(points)
+            rotvec = torch.as_tensor(rotvec_from_matrix(R)).to(points)
             shift = jaw_t.detach().to(points)
         return cls(points=points, neutral=a.neutral, skin_weight=a.skin_weight, expressions=a.expressions,
                    jaw_pivot=model.jaw_pivot, center=model.center, scale=float(model.config.scale),

@@ -16,6 +16,8 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
+from models.quaternion import gaussian_smooth, matrix_from_quat, quat_from_matrix, slerp_keys
+
 
 @dataclass(frozen=True)
 class PnPSettings:
@@ -178,8 +180,6 @@ def interpolate_poses(R: np.ndarray, t: np.ndarray, ok: np.ndarray) -> tuple[np.
 
     Args: R ``(T, 3, 3)``, t ``(T, 3)``, ok ``(T,)`` bool with at least one True.
     """
-    from scipy.spatial.transform import Rotation, Slerp   # here: the PnP alone is run without scipy
-
     T = len(ok)
     good = np.flatnonzero(ok)
     if len(good) == 0:
@@ -190,24 +190,19 @@ def interpolate_poses(R: np.ndarray, t: np.ndarray, ok: np.ndarray) -> tuple[np.
     if len(good) == 1:
         R_out = np.broadcast_to(R[good[0]], (T, 3, 3)).copy()
     else:
-        R_out = Slerp(good, Rotation.from_matrix(R[good]))(clipped).as_matrix()
+        R_out = slerp_keys(good, R[good], clipped)
     return R_out, t_out
 
 
 def smooth_poses(R: np.ndarray, t: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian smoothing over time of rotations (sign-aligned quaternions) and translations."""
-    from scipy.ndimage import gaussian_filter1d
-    from scipy.spatial.transform import Rotation
-
     if sigma <= 0 or len(t) < 2:
         return R, t
-    q = Rotation.from_matrix(R).as_quat()
+    q = quat_from_matrix(R)
     for j in range(1, len(q)):  # one hemisphere, so that averaging neighbours is meaningful
         if np.dot(q[j], q[j - 1]) < 0:
             q[j] = -q[j]
-    q = gaussian_filter1d(q, sigma, axis=0, mode="nearest")
-    t = gaussian_filter1d(t, sigma, axis=0, mode="nearest")
-    return Rotation.from_quat(q / np.linalg.norm(q, axis=1, keepdims=True)).as_matrix(), t
+    return matrix_from_quat(gaussian_smooth(q, sigma)), gaussian_smooth(t, sigma)
 
 
 def initial_head_poses(model_points: np.ndarray, points2d: np.ndarray, weights: np.ndarray, K: np.ndarray,
