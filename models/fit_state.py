@@ -20,6 +20,7 @@ from torch import nn
 from models.checks import check_shapes
 from models.fit_settings import FitSettings
 from models.lbs import lbs_jaw
+from models.quaternion import rotvec_from_matrix
 from models.rotation import IDENTITY_6D, apply_rigid, rot6d_to_matrix, so3_exp
 
 
@@ -56,8 +57,6 @@ class ActorAtPoints:
         a = model(points) if evaluated is None else evaluated
         rotvec = shift = None
         if jaw_rot6d is not None and jaw_t is not None:
-            from models.quaternion import rotvec_from_matrix
-
             R = rot6d_to_matrix(jaw_rot6d.detach().double()).cpu().numpy()
             rotvec = torch.as_tensor(rotvec_from_matrix(R)).to(points)
             shift = jaw_t.detach().to(points)
