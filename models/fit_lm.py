@@ -12,7 +12,9 @@ vector (rad), head translation (length_unit_mm), jaw rotation vector, jaw transl
 offsets]``; rotations are updated on the left (``R0 <- exp([a]x) R0``). The Jacobians are analytic:
 ``d x / d delta`` per point (:meth:`_Problem._jacobian`) chained with the projection's ``d uv / d x``
 (:func:`projection_jacobian`, OpenCV's distortion model); the temporal terms add banded blocks
-(:func:`_add_stencil`). The normal equations (``J n`` unknowns) are solved in float64 by Cholesky with
+(:func:`_add_stencil`). The Gauss-Newton matrix comes from that Jacobian in float32, laid out as planes
+over the points so that every product runs along contiguous rows; the gradient is contracted in float64
+from the residuals' derivative wrt the points, without the Jacobian (:meth:`_Problem._gradient`). The normal equations (``J n`` unknowns) are solved in float64 by Cholesky with
 Marquardt's scaled damping; a step is kept only if the exact energy (robust 2D loss included) goes
 down. The pseudo-Huber 2D loss enters the linearisation through iteratively reweighted least squares
 (weights ``rho'(r^2)`` at the current point), whose ``J^T r`` is the exact gradient.
@@ -62,6 +64,8 @@ class _Problem:
         self.unit = self.s.length_unit_mm
         self.s0, self.k = cast(actor.neutral), cast(actor.skin_weight)[:, None]           # (P, 3), (P, 1)
         self.pivot, self.E_basis = cast(actor.jaw_pivot), cast(actor.expressions)         # (3,), (P, E, 3)
+        self.k32 = self.k.float().reshape(-1)                                              # the Jacobian's copies:
+        self.E32c = self.E_basis.float().permute(2, 1, 0)[:, :, None, :].contiguous()     # (3, E, 1, P) planes
         self.p2d = None if obs.points2d is None else torch.nan_to_num(cast(obs.points2d))
         self.w2d = None if obs.points2d is None else observation_weights(obs, f64).to(f64)
         self.K, self.dist, self.p3d = cast(obs.K), cast(obs.dist), cast(obs.points3d)
@@ -107,7 +111,7 @@ class _Problem:
         s, J, P, E, u = self.s, self.J, self.P, self.E, self.unit
         e = 0.0
         if self.p2d is not None:
-            r2 = (project_points(x, self.K, self.dist) - self.p2d).square().sum(-1)
+            r2 = (projection_jacobian(x, self.K, self.dist, jacobian=False) - self.p2d).square().sum(-1)
             e += float((self.w2d * robust_2d(r2, s.robust_px)).sum() / self.w2d.sum().clamp_min(1e-12))
         if self.p3d is not None:
             e += float(((x - self.p3d) / u).square().sum(-1).mean())
@@ -152,14 +156,14 @@ class _Problem:
             uv, Jp = projection_jacobian(x, self.K, self.dist)                        # (J, P, 2), (J, P, 2, 3)
             r = uv - self.p2d
             sw = irls_sqrt_weights(r, self.w2d, s.robust_px)                             # (J, P, 1)
-            Jr = self._jacobian(sw[..., None] * Jp, y, jaw_q, pose.head_R)          # (J, P, 2, n)
-            Hb += _gram(Jr)
-            gb += torch.einsum("jpia,jpi->ja", Jr, sw * r)
+            D = sw[..., None] * Jp                                                      # (J, P, 2, 3)
+            Hb += _gram(self._jacobian(D, y, jaw_q, pose.head_R))
+            gb += self._gradient(D, sw * r, y, jaw_q, pose.head_R)
         if self.p3d is not None:
             k3 = 1 / (u * math.sqrt(J * P))
-            Jr = self._jacobian(k3 * torch.eye(3, dtype=x.dtype).expand(J, P, 3, 3), y, jaw_q, pose.head_R)
-            Hb += _gram(Jr)
-            gb += torch.einsum("jpia,jpi->ja", Jr, k3 * (x - self.p3d))
+            D = k3 * torch.eye(3, dtype=x.dtype).expand(J, P, 3, 3)
+            Hb += _gram(self._jacobian(D, y, jaw_q, pose.head_R))
+            gb += self._gradient(D, k3 * (x - self.p3d), y, jaw_q, pose.head_R)
         kw = s.coeff_weight / (J * E)
         Hb[:, 12:, 12:] += kw * torch.eye(E, dtype=x.dtype)
         gb[:, 12:] += kw * (self.Fw_mean + c)
@@ -172,21 +176,48 @@ class _Problem:
         return H, gb.reshape(-1)
 
     def _jacobian(self, D: torch.Tensor, y: torch.Tensor, jaw_q: torch.Tensor, head_R: torch.Tensor) -> torch.Tensor:
-        """``D @ d x / d delta`` ``(J, P, m, n)`` for ``D (J, P, m, 3)`` (the residuals' derivative wrt ``x``).
+        """The residuals' Jacobian ``D @ d x / d delta``, transposed: ``(J, n, m P)`` float32, for ``D (J, P, m, 3)``
+        (the residuals' derivative wrt ``x``); column ``i P + p`` is residual ``i`` of point ``p``.
 
-        ``d x / d delta`` is ``[-[y]x, unit I, -k R_g [R_b q]x, unit k R_g, R_g E_p^T]`` per point.
+        ``d x / d delta`` is ``[-[y]x, unit I, -k R_g [R_b q]x, unit k R_g, R_g E_p^T]`` per point; a row
+        ``d`` of ``D`` times ``-[v]x`` is ``v x d``. Laid out as planes over the points (every product runs
+        along contiguous rows of P) and in float32, like the Gauss-Newton matrix it is only used for
+        (:func:`_gram`); the gradient is :meth:`_gradient`'s, in float64.
         """
-        u, k = self.unit, self.k[..., None]
-        DR = torch.einsum("jpia,jab->jpib", D, head_R)                              # (J, P, m, 3)
+        f32 = torch.float32
         J, P, m, _ = D.shape
-        # R_g E_p^T per point: one small GEMM per point (batched over points)
-        DE = (DR.transpose(0, 1).reshape(P, J * m, 3) @ self.E_basis.transpose(1, 2)).reshape(P, J, m, -1)
-        return torch.cat([-(D @ _skew(y)), u * D, -k * (DR @ _skew(jaw_q)), (u * k) * DR,
-                          DE.transpose(0, 1)], -1)
+        Dt = D.to(f32).permute(0, 3, 2, 1).contiguous()                              # (J, 3, m, P)
+        yt = y.to(f32).permute(0, 2, 1)[:, :, None, :]                                # (J, 3, 1, P)
+        qt = jaw_q.to(f32).permute(0, 2, 1)[:, :, None, :]
+        DRt = (head_R.to(f32).transpose(1, 2) @ Dt.reshape(J, 3, m * P)).reshape(J, 3, m, P)   # rows of D R_g
+        X = Dt.new_empty(J, self.n, m, P)
+        _cross_planes(X[:, 0:3], yt, Dt)
+        torch.mul(Dt, self.unit, out=X[:, 3:6])
+        _cross_planes(X[:, 6:9], qt, DRt)
+        X[:, 6:9].mul_(self.k32)
+        torch.mul(DRt, self.unit * self.k32, out=X[:, 9:12])
+        C, Ec = X[:, 12:], self.E32c                                                  # R_g E_p^T
+        C.zero_()
+        C.addcmul_(DRt[:, 0:1], Ec[0])
+        C.addcmul_(DRt[:, 1:2], Ec[1])
+        C.addcmul_(DRt[:, 2:3], Ec[2])
+        return X.reshape(J, self.n, m * P)
+
+    def _gradient(self, D: torch.Tensor, rs: torch.Tensor, y: torch.Tensor, jaw_q: torch.Tensor,
+                  head_R: torch.Tensor) -> torch.Tensor:
+        """``(D @ d x / d delta)^T rs`` summed over points ``(J, n)``, float64, for residuals ``rs (J, P, m)``.
+
+        With ``v = D^T rs`` per point (the gradient wrt ``x``) this is, per frame, ``[sum y x v, unit sum v,
+        sum k R_b q x v R_g, unit sum k v R_g, sum E_p R_g^T v]`` (see :meth:`_jacobian`)."""
+        v = sum(D[:, :, i] * rs[:, :, i, None] for i in range(D.shape[2]))          # (J, P, 3)
+        vR = torch.einsum("jpa,jab->jpb", v, head_R)
+        return torch.cat([_cross(y, v).sum(1), self.unit * v.sum(1),
+                          (self.k * _cross(jaw_q, vR)).sum(1), self.unit * (self.k * vR).sum(1),
+                          torch.einsum("jpc,pec->je", vR, self.E_basis)], -1)
 
     def _add_temporal(self, H: torch.Tensor, g: torch.Tensor, pose: FramePose, c: torch.Tensor) -> None:
         """Add the temporal terms' ``J^T J`` to ``H (J, J, n, n)`` and ``J^T r`` to ``g (J, n)``, at the base."""
-        s, J, u, E, n = self.s, self.J, self.unit, self.E, self.n
+        s, J, u, n = self.s, self.J, self.unit, self.n
         eye3 = torch.eye(3, dtype=c.dtype).expand(J, 3, 3)
         gens = _skew(torch.eye(3, dtype=c.dtype))                                    # (3, 3, 3): [e_a]x
         # per frame, each quantity's derivative wrt its own update: vec(R) wrt R's rotation vector
@@ -204,8 +235,7 @@ class _Problem:
             _add_stencil(H, g, val, _blocks([dR(pose.jaw_R), eye3]), slice(6, 12), (1.0,), k)
         if s.coeff_temporal_weight > 0 and J > 1:
             k = math.sqrt(s.coeff_temporal_weight / (J - 1))
-            _add_stencil(H, g, self.Fw_mean + c, torch.eye(E, dtype=c.dtype).expand(J, E, E), slice(12, n),
-                         (-1.0, 1.0), k)
+            _add_stencil(H, g, self.Fw_mean + c, None, slice(12, n), (-1.0, 1.0), k)
 
     def accept(self, d: torch.Tensor) -> None:
         R0, t0, jR0, jt0, c0 = self.base
@@ -214,13 +244,26 @@ class _Problem:
                      c0 + d[:, 12:]]
 
 
-def _gram(Jr: torch.Tensor) -> torch.Tensor:
-    """``sum_{p, i} Jr[j, p, i, a] Jr[j, p, i, b]`` ``(J, n, n)`` for ``Jr (J, P, m, n)``, accumulated in float32.
+def _gram(Xt: torch.Tensor) -> torch.Tensor:
+    """``Xt Xt^T`` ``(J, n, n)`` float64 for a transposed Jacobian ``Xt (J, n, rows)`` (:meth:`_Problem._jacobian`), in float32.
 
     Only the Gauss-Newton matrix is rounded (it shapes the step, not the fixed point: the gradient and
     the energy that accepts a step stay in float64)."""
-    X = Jr.reshape(Jr.shape[0], -1, Jr.shape[-1]).float()
-    return (X.transpose(1, 2) @ X).to(Jr.dtype)
+    return (Xt @ Xt.transpose(1, 2)).to(torch.float64)
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a x b`` over the last axis (``torch.linalg.cross`` is several times slower on CPU for small vectors)."""
+    a0, a1, a2 = a.unbind(-1)
+    b0, b1, b2 = b.unbind(-1)
+    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
+
+
+def _cross_planes(out: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> None:
+    """``out = a x b`` over axis 1 (``(J, 3, ...)`` planes, broadcast), written in place."""
+    for i, (j, k) in enumerate(((1, 2), (2, 0), (0, 1))):
+        torch.mul(a[:, j], b[:, k], out=out[:, i])
+        out[:, i].addcmul_(a[:, k], b[:, j], value=-1)
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
@@ -242,28 +285,34 @@ def _blocks(G: list[torch.Tensor]) -> torch.Tensor:
     return out
 
 
-def _add_stencil(H: torch.Tensor, g: torch.Tensor, v: torch.Tensor, G: torch.Tensor, cols: slice,
+def _add_stencil(H: torch.Tensor, g: torch.Tensor, v: torch.Tensor, G: torch.Tensor | None, cols: slice,
                  stencil: tuple[float, ...], k: float) -> None:
     """Add the Gauss-Newton terms of residuals ``r_j = k sum_i stencil[i] v_{j+i}`` (``v (J, q)``) whose
-    Jacobian wrt ``delta_{j+i}[cols]`` is ``k stencil[i] G_{j+i}`` (``G (J, q, c)``), to ``H (J, J, n, n)``
-    and ``g (J, n)``."""
+    Jacobian wrt ``delta_{j+i}[cols]`` is ``k stencil[i] G_{j+i}`` (``G (J, q, c)``; None: the identity),
+    to ``H (J, J, n, n)`` and ``g (J, n)``."""
     S = len(stencil)
     M = v.shape[0] - S + 1
-    m = torch.arange(M)
     r = k * sum(a * v[i:i + M] for i, a in enumerate(stencil))                         # (M, q)
+    eye = None if G is not None else torch.eye(v.shape[1], dtype=v.dtype, device=v.device)[..., None]
     for i, a in enumerate(stencil):
-        Gi = k * a * G[i:i + M]                                                     # (M, q, c)
-        g[m + i, cols] += torch.einsum("mqa,mq->ma", Gi, r)
+        Gi = None if G is None else k * a * G[i:i + M]                              # (M, q, c)
+        g[i:i + M, cols] += k * a * r if G is None else torch.einsum("mqa,mq->ma", Gi, r)
         for i2, a2 in enumerate(stencil):
-            blk = torch.einsum("mqa,mqb->mab", Gi, k * a2 * G[i2:i2 + M])
-            H[m + i, m + i2, cols, cols] += blk
+            blk = (k * k * a * a2) * eye if G is None else torch.einsum("mqa,mqb->abm", Gi, k * a2 * G[i2:i2 + M])
+            # H[m + i, m + i2] for m < M (blk (c, c, M) or (c, c, 1)): entries min(i, i2) + m of the block
+            # diagonal at offset i2 - i
+            t = min(i, i2)
+            torch.diagonal(H, offset=i2 - i, dim1=0, dim2=1)[cols, cols, t:t + M] += blk
 
 
-def projection_jacobian(x: torch.Tensor, K: torch.Tensor, dist: torch.Tensor | None):
-    """Pixels ``(*, N, 2)`` of camera points ``x (*, N, 3)`` and their Jacobian ``d uv / d x (*, N, 2, 3)``.
+def projection_jacobian(x: torch.Tensor, K: torch.Tensor, dist: torch.Tensor | None, jacobian: bool = True):
+    """Pixels ``(*, N, 2)`` of camera points ``x (*, N, 3)`` and their Jacobian ``d uv / d x (*, N, 2, 3)``
+    (``jacobian=False``: the pixels alone).
 
     Analytic for OpenCV's pinhole model with 0, 4, 5, 8 or 12 distortion coefficients (k1 k2 p1 p2
-    [k3 [k4 k5 k6 [s1 s2 s3 s4]]]); by reverse-mode autograd through :func:`project_points` otherwise.
+    [k3 [k4 k5 k6 [s1 s2 s3 s4]]]), skipping the terms whose coefficients are all zero; by reverse-mode
+    autograd through :func:`project_points` otherwise. Like ``cv2.projectPoints`` and kornia it reads
+    ``fx fy cx cy`` from ``K`` and ignores a skew ``K[0, 1]``.
     """
     D = 0 if dist is None else dist.shape[-1]
     if D not in (0, 4, 5, 8, 12) or K.dim() != 2:
@@ -272,31 +321,49 @@ def projection_jacobian(x: torch.Tensor, K: torch.Tensor, dist: torch.Tensor | N
             uv = project_points(xg, K, dist)
             gu, = torch.autograd.grad(uv[..., 0].sum(), xg, retain_graph=True)
             gv, = torch.autograd.grad(uv[..., 1].sum(), xg)
-        return uv.detach(), torch.stack([gu, gv], -2)
+        return (uv.detach(), torch.stack([gu, gv], -2)) if jacobian else uv.detach()
     c = [0.0] * 12
     if D:
         c[:D] = [float(v) for v in dist]
     k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = c
+    rational, tangential, prism = any(c[5:8]), bool(p1 or p2), any(c[8:])     # terms that are there at all
     iz = 1 / x[..., 2]
     a, b = x[..., 0] * iz, x[..., 1] * iz
     r2 = a * a + b * b
     num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    rad = num / den
-    drad = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / den ** 2
-    xd = a * rad + 2 * p1 * a * b + p2 * (r2 + 2 * a * a) + r2 * (s1 + s2 * r2)
-    yd = b * rad + p1 * (r2 + 2 * b * b) + 2 * p2 * a * b + r2 * (s3 + s4 * r2)
-    tx, ty = s1 + 2 * s2 * r2, s3 + 2 * s4 * r2
-    xa = rad + 2 * a * a * drad + 2 * p1 * b + 6 * p2 * a + 2 * a * tx
-    xb = 2 * a * b * drad + 2 * p1 * a + 2 * p2 * b + 2 * b * tx
-    ya = 2 * a * b * drad + 2 * p1 * a + 2 * p2 * b + 2 * a * ty
-    yb = rad + 2 * b * b * drad + 6 * p1 * b + 2 * p2 * a + 2 * b * ty
-    fx, sk, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
-    uv = torch.stack([fx * xd + sk * yd + cx, fy * yd + cy], -1)
-    # d(xd, yd)/d(a, b) @ d(a, b)/d(x, y, z); d a/dx = 1/z, d a/dz = -a/z
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6)) if rational else 1.0
+    rad = num / den if rational else num
+    xd, yd = a * rad, b * rad
+    if tangential:
+        ab2 = 2 * a * b
+        xd = xd + p1 * ab2 + p2 * (r2 + 2 * a * a)
+        yd = yd + p1 * (r2 + 2 * b * b) + p2 * ab2
+    if prism:
+        xd = xd + r2 * (s1 + s2 * r2)
+        yd = yd + r2 * (s3 + s4 * r2)
+    fx, cx, fy, cy = (float(v) for v in (K[0, 0], K[0, 2], K[1, 1], K[1, 2]))   # no skew: as OpenCV and kornia
+    uv = torch.stack([fx * xd + cx, fy * yd + cy], -1)
+    if not jacobian:
+        return uv
+    drad = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    if rational:
+        drad = (drad * den - num * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / den ** 2
+    # d(xd, yd)/d(a, b) = [[xa, xb], [ya, yb]]
+    xa, yb, xb = rad + 2 * a * a * drad, rad + 2 * b * b * drad, 2 * a * b * drad
+    ya = xb
+    if tangential:
+        xa = xa + 2 * p1 * b + 6 * p2 * a
+        yb = yb + 6 * p1 * b + 2 * p2 * a
+        xb = xb + 2 * p1 * a + 2 * p2 * b
+        ya = xb
+    if prism:
+        tx, ty = s1 + 2 * s2 * r2, s3 + 2 * s4 * r2
+        xa, xb = xa + 2 * a * tx, xb + 2 * b * tx
+        ya, yb = ya + 2 * a * ty, yb + 2 * b * ty
+    # @ d(a, b)/d(x, y, z); d a/dx = 1/z, d a/dz = -a/z
     dxd = torch.stack([xa * iz, xb * iz, -(xa * a + xb * b) * iz], -1)
     dyd = torch.stack([ya * iz, yb * iz, -(ya * a + yb * b) * iz], -1)
-    return uv, torch.stack([fx * dxd + sk * dyd, fy * dyd], -2)
+    return uv, torch.stack([fx * dxd, fy * dyd], -2)
 
 
 @torch.no_grad()

@@ -255,17 +255,26 @@ def test_lm_converges_in_a_few_iterations_and_handles_3d():
 
 
 @pytest.mark.parametrize("n_dist", [0, 4, 5, 8, 12, 14])
-def test_projection_jacobian_matches_autograd(n_dist):
+@pytest.mark.parametrize("zero", ["", "tangential", "rational", "prism", "radial"])
+def test_projection_jacobian_matches_autograd(n_dist, zero):
+    """The analytic projection and its Jacobian equal kornia's projection and autograd through it, with
+    every group of distortion terms on or off (the analytic path skips the groups that are zero) and a skew."""
     from calib.projection import project_points
     from models.fit_lm import projection_jacobian
 
     g = torch.Generator().manual_seed(n_dist)
     x = torch.randn(2, 50, 3, generator=g, dtype=torch.float64) * 80 + torch.tensor([0, 0, 500.0], dtype=torch.float64)
     dist = None if n_dist == 0 else 0.05 * torch.randn(n_dist, generator=g, dtype=torch.float64)
+    groups = {"tangential": [2, 3], "rational": [5, 6, 7], "prism": [8, 9, 10, 11], "radial": [0, 1, 4]}
+    if dist is not None and zero:
+        dist[[i for i in groups[zero] if i < n_dist]] = 0.0
     Kx = K.clone()
+    if zero == "radial":
+        Kx[0, 1] = 3.0   # a skew, which OpenCV and kornia ignore
 
     uv, Jp = projection_jacobian(x, Kx, dist)
     torch.testing.assert_close(uv, project_points(x, Kx, dist))
+    torch.testing.assert_close(projection_jacobian(x, Kx, dist, jacobian=False), uv, rtol=0, atol=0)
     cols = []
     for k in range(3):
         xg = x.clone().requires_grad_(True)

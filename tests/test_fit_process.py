@@ -208,3 +208,45 @@ def test_capture_run_loads_neither_torch_nor_trimesh_outside_its_fit_process(tak
     assert len(list((out / "meshes").glob("*.obj"))) == N_FRAMES
     svgs = re.findall(r"src='data:image/svg\+xml;base64,([^']+)'", (out / "report.html").read_text())
     assert any(b"jawOpen" in base64.b64decode(b) for b in svgs)    # the rig the fit process handed back
+
+
+def test_the_pnp_model_comes_before_the_networks_are_evaluated_and_wait_ready_waits_for_both(take):
+    """The parent can pose the first rows while the fit evaluates the actor at every template vertex; capture
+    live's wait_ready returns only once that is done (no frame dropped for it)."""
+    import copy
+
+    from capture.fit.process import FitWorker
+    from capture.fit.take import WindowedFit
+
+    actor, tp, cam, rows, _ = take
+    gate, entered = threading.Event(), threading.Event()
+    slow = copy.copy(actor)
+
+    def at_template():
+        entered.set()
+        assert gate.wait(30)
+        return actor.at_template()
+
+    slow.at_template = at_template
+    worker = FitWorker(slow, tp, cam, WindowedFit("default", window=4, overlap=1), in_process=False)
+    try:
+        box = {}
+        waiter = threading.Thread(target=lambda: box.setdefault("model", worker._wait_model_points()), daemon=True)
+        waiter.start()
+        waiter.join(20)
+        assert "model" in box, "the PnP model did not come while the networks were being evaluated"
+        model = box["model"]
+        assert entered.wait(30) and not gate.is_set()
+        assert model.shape == (len(tp), 3) and np.isfinite(model).all()
+        ready = threading.Thread(target=worker.wait_ready, daemon=True)
+        ready.start()
+        ready.join(0.5)
+        assert ready.is_alive()                         # still evaluating: not ready
+        gate.set()
+        ready.join(30)
+        assert not ready.is_alive()
+        got = _run(worker, rows)
+        assert [int(f.frame) for f, _ in got] == list(range(N_FRAMES))
+    finally:
+        gate.set()
+        worker.close()

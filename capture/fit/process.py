@@ -19,7 +19,8 @@ Protocol::
 
     parent -> child   (points (L, 2), weights (L,), face_found, PnP head pose or None) per frame, then
                       END (or ABORT)
-    child -> parent   on its own pipe, the PnP model points once the actor's networks are built; then
+    child -> parent   on the ready pipe, the PnP model points (the actor at the landmarks), then BUILT
+                      once the networks are evaluated at every template vertex; on its own pipe,
                       ("fit", FrameFit, rows read so far) per frame, then ("end", timings, the actor's
                       FaceRig, which the parent adopts), ("error", exception) or ("aborted",)
 
@@ -41,6 +42,7 @@ from typing import Iterable, Iterator
 
 END = "end"
 ABORT = "abort"
+BUILT = "built"        # on the ready pipe after the PnP model: the actor's networks are evaluated
 JOIN_S = 600.0         # how long :meth:`FitWorker.close` waits for the window being solved
 
 
@@ -99,9 +101,12 @@ def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_po
 
     timings: dict = {}
     try:
-        if hasattr(actor, "at_template"):     # build the networks and evaluate them now (see FitWorker.wait_ready)
-            actor.at_template()
+        # the PnP model first (the actor at the landmarks only): the parent poses the first rows while the
+        # networks are evaluated at every template vertex (~0.6 s on one core), then says so (wait_ready)
         ready_conn.send(pnp_model_points(actor, template_points, how.device))
+        if hasattr(actor, "at_template"):
+            actor.at_template()
+        ready_conn.send(BUILT)
         busy, t_last = 0.0, time.perf_counter()
         for ff in fit_take_stream(actor, rows(), template_points, camera, how, causal=causal, timings=timings):
             now = time.perf_counter()
@@ -170,6 +175,7 @@ class FitWorker:
         self._pnp_settings = PnPSettings()     # fit_take_stream's default
         self._ready_lock = threading.Lock()
         self._model_points = None
+        self._built = False
         self._pnp_s = 0.0
         self._send_lock = threading.Lock()
         self._sent_end = False
@@ -268,11 +274,18 @@ class FitWorker:
                 raise msg[1]
 
     def wait_ready(self) -> None:
-        """Wait until the fit has built the actor's networks (``capture live``: before the source plays, so
-        that no frame is dropped while torch is imported); raises the fit's error."""
+        """Wait until the fit has built the actor's networks and evaluated them at the template (``capture
+        live``: before the source plays, so that no frame is dropped while torch is imported); raises the
+        fit's error."""
         try:
             self._wait_model_points()
-        except FitStopped:
+            with self._ready_lock:
+                while not self._built:
+                    if self._ready.poll(0.1):
+                        self._built = self._ready.recv() == BUILT
+                    elif not self._alive() and not self._ready.poll(0):
+                        raise FitStopped("the fit ended before it was ready")
+        except (FitStopped, EOFError):
             if self._out.poll(5.0):
                 msg = self._out.recv()
                 if msg[0] == "error":

@@ -324,14 +324,16 @@ def _window_outputs(state: dict, settings: FitSettings, fit_actor: ActorAtPoints
         out["landmarks_fit"] = project_points(lm3, K, dist).cpu().double().numpy()
     else:
         out["landmarks_fit"] = np.zeros((J, 0, 2))
+    if fit.net_is_zero():   # F_W at its zero start (2D default): the same coefficients at every vertex, all frames at once
+        out["vertices"] = pose_face(out_actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t,
+                                    fit.coeff0[:, None, :]).cpu().numpy().astype(np.float32, copy=False)
+        return out
     V = out_actor.points.shape[0]
     verts = np.empty((J, V, 3), np.float32)
     for j in range(J):  # one frame at a time: F_W at every vertex is the big evaluation
         sl = slice(j, j + 1)
-        # F_W at its zero start (2D default): the same coefficients at every vertex
-        w = fit.coeff0[sl, None, :] if fit.net_is_zero() else fit.coefficients(out_actor, frames=sl)
         verts[j] = pose_face(out_actor, pose.head_R[sl], pose.head_t[sl], pose.jaw_R[sl], pose.jaw_t[sl],
-                             w)[0].cpu().numpy()
+                             fit.coefficients(out_actor, frames=sl))[0].cpu().numpy()
     out["vertices"] = verts
     return out
 
