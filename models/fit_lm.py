@@ -14,10 +14,11 @@ offsets]``; rotations are updated on the left (``R0 <- exp([a]x) R0``). The Jaco
 (:func:`projection_jacobian`, OpenCV's distortion model); the temporal terms add banded blocks
 (:func:`_add_stencil`). The Gauss-Newton matrix comes from that Jacobian in float32, laid out as planes
 over the points so that every product runs along contiguous rows; the gradient is contracted in float64
-from the residuals' derivative wrt the points, without the Jacobian (:meth:`_Problem._gradient`). The normal equations (``J n`` unknowns) are solved in float64 by Cholesky with
-Marquardt's scaled damping; a step is kept only if the exact energy (robust 2D loss included) goes
-down. The pseudo-Huber 2D loss enters the linearisation through iteratively reweighted least squares
-(weights ``rho'(r^2)`` at the current point), whose ``J^T r`` is the exact gradient.
+from the residuals' derivative wrt the points, without the Jacobian (:meth:`_Problem._gradient`). The
+normal equations (``J n`` unknowns) are solved in float64 by Cholesky with Marquardt's scaled damping;
+a step is kept only if the exact energy (robust 2D loss included) goes down. The pseudo-Huber 2D loss
+enters the linearisation through iteratively reweighted least squares (weights ``rho'(r^2)`` at the
+current point), whose ``J^T r`` is the exact gradient.
 """
 
 from __future__ import annotations
