@@ -277,16 +277,3 @@ def test_the_command_line_loads_without_heavy_imports():
                        env={**os.environ, "PYTHONPATH": str(root)})
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == ""
-
-
-def test_detection_groups_put_the_first_segment_alone_and_keep_the_order():
-    from capture.run.stream import detection_groups
-
-    missing = [0, 32, 64, 96, 128, 160]
-    assert detection_groups(missing, 2) == [[0], [32, 64], [96, 128], [160]]
-    assert detection_groups(missing, 1) == [[s] for s in missing]
-    assert detection_groups([5], 4) == [[5]]
-    assert detection_groups([], 3) == []
-    for lanes in (1, 2, 3, 8):   # every segment once, in order, no group over the lane count
-        groups = detection_groups(missing, lanes)
-        assert [s for g in groups for s in g] == missing and max(map(len, groups)) <= lanes

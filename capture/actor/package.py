@@ -223,15 +223,22 @@ class Actor:
     def at_template(self):
         """The frozen model's outputs (:class:`models.aim.Anatomy`, float32, on the model's device) at every
         template vertex, evaluated once per loaded actor: the fit's output points, the rig export and the
-        report all need them, and each evaluation costs a forward pass of the five networks."""
+        report all need them, and each evaluation costs a forward pass of the five networks. The first
+        evaluation is kept in the user's cache (:mod:`capture.actor.template_cache`), so later loads read it."""
         cached = self._parts.get("at_template")
         if cached is None:
             import torch
 
+            from capture.actor import template_cache
+
             device = next(iter(self.model.parameters())).device
-            pts = torch.as_tensor(self.template_vertices, dtype=torch.float32, device=device)
-            with torch.no_grad():
-                cached = self.model(pts)
+            key = template_cache.cache_key(self.config.to_dict(), self.template_vertices, self._weights)
+            cached = template_cache.read(key, device)
+            if cached is None:
+                pts = torch.as_tensor(self.template_vertices, dtype=torch.float32, device=device)
+                with torch.no_grad():
+                    cached = self.model(pts)
+                template_cache.write(key, cached)
             self._parts["at_template"] = cached
         return cached
 

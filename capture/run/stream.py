@@ -191,19 +191,8 @@ def plan_detection(video: Path, detector, out_dir: Path, frames, query) -> Detec
     missing = [s for s in starts if s not in cached]
     seg_len = {s: min(seg, info.frame_count - s) for s in starts}
     lanes = max(1, min(detector.batch_size, DECODE_BUDGET_BYTES // max(1, info.width * info.height * 3 * seg)))
-    return DetectPlan(starts, seg_len, cached, detection_groups(missing, lanes), wanted, cdir, info)
-
-
-def detection_groups(missing: list[int], lanes: int) -> list[list[int]]:
-    """The segments to detect (starts, in order) in groups of ``lanes`` run side by side, the first alone.
-
-    Lanes advance together, so a group's frames are all done only when its longest lane is: the first
-    segment alone reaches the fit after one segment's detection instead of a group's (on a 1280x720 take
-    with two lanes the first window was fitted ~1 s sooner). Each segment is detected from its own start
-    with its own track, so the grouping does not change the landmarks."""
-    if not missing:
-        return []
-    return [missing[:1]] + [missing[g:g + lanes] for g in range(1, len(missing), lanes)]
+    groups = [missing[g:g + lanes] for g in range(0, len(missing), lanes)]
+    return DetectPlan(starts, seg_len, cached, groups, wanted, cdir, info)
 
 
 def _frame_weights(points: np.ndarray, confidence: np.ndarray | None) -> np.ndarray:
