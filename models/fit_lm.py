@@ -82,6 +82,7 @@ class _Problem:
         self.P = Fw.shape[1]
         self.base = [cast(fit.head_R0), cast(fit.head_t0), cast(fit.jaw_R0), cast(fit.jaw_t0), cast(fit.coeff0)]
         self.J, self.E = self.base[4].shape
+        self.E_flat = self.E_basis.permute(1, 0, 2).reshape(self.E, -1)                  # (E, P 3)
         self.n = 12 + self.E
         self._H = None
         # the jaw prior's target, held at the solve's start (re-evaluated at every solve)
@@ -99,10 +100,10 @@ class _Problem:
     def model(self, pose: FramePose, c: torch.Tensor):
         """Camera-frame points ``x (J, P, 3)``, their rotated local part ``y = R_g L`` and ``R_b (s0 - pivot)``."""
         q = self.s0 - self.pivot
-        jaw_q = torch.einsum("jab,pb->jpa", pose.jaw_R, q)
+        jaw_q = torch.matmul(q, pose.jaw_R.transpose(1, 2))                                # R_b q (J, P, 3)
         skinned = self.s0 + self.k * (jaw_q + self.pivot + pose.jaw_t[:, None] - self.s0)
-        local = skinned + self.A + (c @ self.E_basis.permute(1, 0, 2).reshape(self.E, -1)).reshape(self.J, self.P, 3)
-        y = torch.einsum("jab,jpb->jpa", pose.head_R, local)
+        local = skinned + self.A + (c @ self.E_flat).reshape(self.J, self.P, 3)
+        y = torch.bmm(local, pose.head_R.transpose(1, 2))                                 # R_g L
         return y + pose.head_t[:, None], y, jaw_q
 
     def energy(self, d: torch.Tensor | None = None) -> float:
@@ -211,7 +212,7 @@ class _Problem:
         With ``v = D^T rs`` per point (the gradient wrt ``x``) this is, per frame, ``[sum y x v, unit sum v,
         sum k R_b q x v R_g, unit sum k v R_g, sum E_p R_g^T v]`` (see :meth:`_jacobian`)."""
         v = sum(D[:, :, i] * rs[:, :, i, None] for i in range(D.shape[2]))          # (J, P, 3)
-        vR = torch.einsum("jpa,jab->jpb", v, head_R)
+        vR = torch.bmm(v, head_R)
         return torch.cat([_cross(y, v).sum(1), self.unit * v.sum(1),
                           (self.k * _cross(jaw_q, vR)).sum(1), self.unit * (self.k * vR).sum(1),
                           torch.einsum("jpc,pec->je", vR, self.E_basis)], -1)
@@ -294,16 +295,21 @@ def _add_stencil(H: torch.Tensor, g: torch.Tensor, v: torch.Tensor, G: torch.Ten
     S = len(stencil)
     M = v.shape[0] - S + 1
     r = k * sum(a * v[i:i + M] for i, a in enumerate(stencil))                         # (M, q)
-    eye = None if G is not None else torch.eye(v.shape[1], dtype=v.dtype, device=v.device)[..., None]
-    for i, a in enumerate(stencil):
-        Gi = None if G is None else k * a * G[i:i + M]                              # (M, q, c)
-        g[i:i + M, cols] += k * a * r if G is None else torch.einsum("mqa,mq->ma", Gi, r)
-        for i2, a2 in enumerate(stencil):
-            blk = (k * k * a * a2) * eye if G is None else torch.einsum("mqa,mqb->abm", Gi, k * a2 * G[i2:i2 + M])
-            # H[m + i, m + i2] for m < M (blk (c, c, M) or (c, c, 1)): entries min(i, i2) + m of the block
-            # diagonal at offset i2 - i
+    if G is None:       # the identity: blocks k^2 a_i a_i2 I, gradients k a_i r
+        eye = torch.eye(v.shape[1], dtype=v.dtype, device=v.device)[..., None]           # (c, c, 1)
+        gs = [(k * a) * r for a in stencil]
+        blk = [[(k * k * a * a2) * eye for a2 in stencil] for a in stencil]
+    else:               # all products in one call: (S, M, c) and (S, S, c, c, M)
+        w = k * torch.tensor(stencil, dtype=v.dtype, device=v.device)
+        Gs = torch.stack([G[i:i + M] for i in range(S)]) * w[:, None, None, None]
+        gs = torch.einsum("smqa,mq->sma", Gs, r)
+        blk = torch.einsum("smqa,tmqb->stabm", Gs, Gs)
+    for i in range(S):
+        g[i:i + M, cols] += gs[i]
+        for i2 in range(S):
+            # H[m + i, m + i2] for m < M: entries min(i, i2) + m of the block diagonal at offset i2 - i
             t = min(i, i2)
-            torch.diagonal(H, offset=i2 - i, dim1=0, dim2=1)[cols, cols, t:t + M] += blk
+            torch.diagonal(H, offset=i2 - i, dim1=0, dim2=1)[cols, cols, t:t + M] += blk[i][i2]
 
 
 def projection_jacobian(x: torch.Tensor, K: torch.Tensor, dist: torch.Tensor | None, jacobian: bool = True):

@@ -181,20 +181,13 @@ def test_lm_energy_and_gradient_match_the_fitting_energy():
     assert prob.frame_bandwidth == block_bandwidth(H) == 2
 
 
-def test_lm_reaches_the_least_squares_minimum_of_scipy():
-    """solve_base and scipy.optimize.least_squares minimise the same energy to the same point.
-
-    scipy sees an independent residual vector (built here from pose_face and project_points, squared
-    loss) and differentiates it numerically."""
-    import numpy as np
-    from scipy.optimize import least_squares
-
+def _lm_residuals(fit, actor, obs, s):
+    """The squared-loss fit's residual vector as a function of the base update ``d (J n,)`` (float64 torch),
+    built independently of models.fit_lm from pose_face and project_points; and ``model(d)``, the poses and
+    coefficients at ``base + d``."""
     from calib.projection import project_points
-    from models.fit_lm import so3_exp, solve_base
+    from models.fit_lm import so3_exp
 
-    s = replace(LM_SETTINGS, robust_px=0.0)
-    actor, obs = _lm_problem(P=30)
-    fit = _perturbed_fit(s)
     J, E = fit.coeff0.shape
     u = s.length_unit_mm
     with torch.no_grad():
@@ -223,9 +216,28 @@ def test_lm_reaches_the_least_squares_minimum_of_scipy():
         acc = lambda q: (q[2:] - 2 * q[1:-1] + q[:-2]).flatten()
         k = (s.pose_accel_weight / (J - 2)) ** 0.5
         r += [k * acc(head_t / u), k * acc(head_R), k * acc(jaw_t / u), k * acc(jaw_R)]
-        return torch.cat(r).numpy()
+        return torch.cat(r)
 
-    ref = least_squares(residuals, np.zeros(J * (12 + E)), method="trf", xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    return residuals, model
+
+
+def test_lm_reaches_the_least_squares_minimum_of_scipy():
+    """solve_base and scipy.optimize.least_squares minimise the same energy to the same point.
+
+    scipy sees an independent residual vector (built here from pose_face and project_points, squared
+    loss) and differentiates it numerically."""
+    import numpy as np
+    from scipy.optimize import least_squares
+
+    from models.fit_lm import solve_base
+
+    s = replace(LM_SETTINGS, robust_px=0.0)
+    actor, obs = _lm_problem(P=30)
+    fit = _perturbed_fit(s)
+    J, E = fit.coeff0.shape
+    residuals, model = _lm_residuals(fit, actor, obs, s)
+    ref = least_squares(lambda x: residuals(x).numpy(), np.zeros(J * (12 + E)), method="trf", xtol=1e-12,
+                        ftol=1e-12, gtol=1e-12)
     res = solve_base(fit, actor, obs, iterations=50, tol=1e-14)
     e_ref = float((ref.fun ** 2).sum())
     assert res.energies[-1] == pytest.approx(e_ref, rel=1e-9)
@@ -235,6 +247,29 @@ def test_lm_reaches_the_least_squares_minimum_of_scipy():
         theirs = pose_face(actor, *model(ref.x))
     # the same minimum: points within a micrometre (the face is ~600 mm from the camera)
     torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-3)
+
+
+def test_lm_gauss_newton_matrix_is_jt_j_of_the_residuals():
+    """The normal equations' matrix (its float32 Jacobian planes, the banded temporal blocks added through
+    diagonal views) equals J^T J of the independent residual vector, J by autograd; and g equals J^T r."""
+    from models.fit_lm import _Problem
+
+    s = replace(LM_SETTINGS, robust_px=0.0)
+    for n_frames in (4, 7):          # 7: the pose-acceleration band fills blocks two frames apart
+        actor, obs = _lm_problem(P=40)
+        obs = Observations(points2d=obs.points2d[:1].expand(n_frames, -1, -1).clone(),
+                           weights=obs.weights[:1].expand(n_frames, -1).clone(), K=K, dist=DIST)
+        fit = _perturbed_fit(s, J=n_frames)
+        residuals, _ = _lm_residuals(fit, actor, obs, s)
+        n = 12 + fit.coeff0.shape[1]
+        d0 = torch.zeros(n_frames * n, dtype=torch.float64)
+        Jm = torch.autograd.functional.jacobian(residuals, d0)
+        H, g = _Problem(fit, actor, obs).normal_equations()
+        dense = H.permute(0, 2, 1, 3).reshape(n_frames * n, n_frames * n)
+        ref = Jm.T @ Jm
+        # float32 Jacobian planes: relative rounding ~1e-7 of the largest entries
+        torch.testing.assert_close(dense, ref, rtol=0, atol=1e-5 * float(ref.abs().max()))
+        torch.testing.assert_close(g, Jm.T @ residuals(d0), rtol=1e-8, atol=1e-12)
 
 
 def test_lm_converges_in_a_few_iterations_and_handles_3d():

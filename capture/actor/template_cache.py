@@ -59,7 +59,7 @@ def cache_path(key: str) -> Path:
     return cache_root() / SUBDIR / f"{key}.safetensors"
 
 
-def read(key: str, device) -> "Anatomy | None":
+def read(key: str, device) -> Anatomy | None:
     """The cached outputs of ``key`` on ``device``; None when there are none or they cannot be read."""
     from safetensors import SafetensorError, safe_open
 
@@ -78,7 +78,7 @@ def read(key: str, device) -> "Anatomy | None":
     return Anatomy(**parts)
 
 
-def write(key: str, anatomy: "Anatomy") -> bool:
+def write(key: str, anatomy: Anatomy) -> bool:
     """Write ``anatomy`` under ``key`` (atomically); False when the cache cannot be written."""
     from safetensors.torch import save_file
 
