@@ -44,7 +44,7 @@ from models.fit_state import (
     SequenceFit,
     compose_poses,
 )
-from models.rotation import so3_exp
+from models.rotation import skew, so3_exp
 
 __all__ = ["LMResult", "projection_jacobian", "so3_exp", "solve_base"]
 
@@ -221,7 +221,7 @@ class _Problem:
         """Add the temporal terms' ``J^T J`` to ``H (J, J, n, n)`` and ``J^T r`` to ``g (J, n)``, at the base."""
         s, J, u, n = self.s, self.J, self.unit, self.n
         eye3 = torch.eye(3, dtype=c.dtype).expand(J, 3, 3)
-        gens = _skew(torch.eye(3, dtype=c.dtype))                                    # (3, 3, 3): [e_a]x
+        gens = skew(torch.eye(3, dtype=c.dtype))                                    # (3, 3, 3): [e_a]x
         # per frame, each quantity's derivative wrt its own update: vec(R) wrt R's rotation vector
         dR = lambda R: torch.einsum("aik,jkl->jila", gens, R).reshape(J, 9, 3)
         if s.pose_accel_weight > 0 and J > 2:
@@ -266,14 +266,6 @@ def _cross_planes(out: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> None:
     for i, (j, k) in enumerate(((1, 2), (2, 0), (0, 1))):
         torch.mul(a[:, j], b[:, k], out=out[:, i])
         out[:, i].addcmul_(a[:, k], b[:, j], value=-1)
-
-
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    """``[v]x (*, 3, 3)`` with ``[v]x a = v x a``."""
-    z = torch.zeros_like(v[..., 0])
-    return torch.stack([torch.stack([z, -v[..., 2], v[..., 1]], -1),
-                        torch.stack([v[..., 2], z, -v[..., 0]], -1),
-                        torch.stack([-v[..., 1], v[..., 0], z], -1)], -2)
 
 
 def _blocks(G: list[torch.Tensor]) -> torch.Tensor:

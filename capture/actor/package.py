@@ -231,7 +231,7 @@ class Actor:
 
             from capture.actor import template_cache
 
-            device = next(iter(self.model.parameters())).device
+            device = torch.device(self.device)      # the model's (_build); not built for a cached read
             key = template_cache.cache_key(self.config.to_dict(), self.template_vertices, self._weights)
             cached = template_cache.read(key, device)
             if cached is None:
