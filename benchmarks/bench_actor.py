@@ -53,12 +53,14 @@ def subdivided_sample(out: Path, times: int = 1) -> Path:
     return out
 
 
-def worker(actor: str, preset: str, kind: str, iterations: int, width: int, threads: int) -> None:
+def worker(actor: str, preset: str, kind: str, iterations: int, width: int, threads: int, hidden_matmul: str) -> None:
     import torch
 
     from capture.cli import main
 
     args = ["actor", "train", actor, "--preset", preset, "--overwrite", "--no-progress", "--threads", str(threads)]
+    if hidden_matmul:
+        args += ["--hidden-matmul", hidden_matmul]
     if kind == "estimated":
         from capture.actor.sample import sample_shapes_dir
 
@@ -84,10 +86,11 @@ def worker(actor: str, preset: str, kind: str, iterations: int, width: int, thre
                       "load_before": load0, "load_after": os.getloadavg()}))
 
 
-def run(preset: str, kind: str, out: Path, iterations: int | None, width: int | None, threads: int) -> dict:
-    actor = out / f"{kind}_{preset}"
+def run(preset: str, kind: str, out: Path, iterations: int | None, width: int | None, threads: int,
+        hidden_matmul: str = "") -> dict:
+    actor = out / f"{kind}_{preset}{'_' + hidden_matmul if hidden_matmul else ''}"
     cmd = [sys.executable, __file__, "--worker", str(actor), preset, kind, str(iterations or 0), str(width or 0),
-           str(threads)]
+           str(threads), hidden_matmul]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         sys.exit(f"{preset} training failed:\n{proc.stderr[-2000:]}")
@@ -104,7 +107,8 @@ def report(preset: str, kind: str, stats: dict, full_iterations: int | None = No
     s = tr["settings"]
     print(f"\n== {kind} actor ({meta['n_vertices']} vertices), preset {preset}: width {s['width']}, depth {s['depth']}, "
           f"{tr['iterations']} iterations, lr {s['lr']}, omega_0 {s['first_omega_0']}/{s['hidden_omega_0']}, "
-          f"points per step {s['points_per_step'] or 'all'}")
+          f"points per step {s['points_per_step'] or 'all'}, hidden products {tr.get('hidden_matmul', 'fp32')}"
+          f" (setting {s.get('hidden_matmul', 'fp32')})")
     print(f"{'shape':<18}{'mean mm':>10}{'max mm':>10}")
     for name, e in q["per_shape"].items():
         print(f"{name:<18}{e['mean_mm']:>10.4f}{e['max_mm']:>10.3f}")
@@ -134,8 +138,8 @@ def main(argv: list[str] | None = None) -> dict:
     """Run the benchmark; returns ``{"out": folder, "runs": [{"preset", "kind", stats + actor metadata}]}``."""
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "--worker":
-        _, actor, preset, kind, iterations, width, threads = argv
-        worker(actor, preset, kind, int(iterations), int(width), int(threads))
+        _, actor, preset, kind, iterations, width, threads, hidden_matmul = argv
+        worker(actor, preset, kind, int(iterations), int(width), int(threads), hidden_matmul)
         return {}
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="a few steps of each preset, narrow nets (CI check)")
@@ -145,6 +149,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=1, help="torch threads per run (0 = torch's default)")
     ap.add_argument("--out", type=Path, default=None, help="where the actors go (default: a temporary folder)")
     ap.add_argument("--presets", default="fast,paper", help="comma-separated, of fast, default, paper")
+    ap.add_argument("--hidden-matmul", default="", help="comma-separated precisions of the hidden products to run "
+                    "side by side (fp32, bf16, auto; default: the preset's)")
     args = ap.parse_args(argv)
     kinds = [k.strip() for k in args.actors.split(",") if k.strip()]
     bad = [k for k in kinds if k not in ACTORS]
@@ -153,15 +159,17 @@ def main(argv: list[str] | None = None) -> dict:
     out = args.out or Path(tempfile.mkdtemp(prefix="bench_actor_"))
     print(f"actors in {out}")
     runs = []
+    precisions = [p.strip() for p in args.hidden_matmul.split(",") if p.strip()] or [""]
     for kind in kinds:
         for preset in [p.strip() for p in args.presets.split(",") if p.strip()]:
             if preset == "paper":
                 iters, full = (5 if args.quick else args.paper_iterations), (None if args.quick else 10_000)
             else:
                 iters, full = (20 if args.quick else args.iterations), None
-            stats = run(preset, kind, out, iters, 32 if args.quick else None, args.threads)
-            report(preset, kind, stats, full)
-            runs.append({"preset": preset, "kind": kind, **stats})
+            for hidden_matmul in precisions:
+                stats = run(preset, kind, out, iters, 32 if args.quick else None, args.threads, hidden_matmul)
+                report(preset, kind, stats, full)
+                runs.append({"preset": preset, "kind": kind, "hidden_matmul": hidden_matmul, **stats})
     return {"out": str(out), "runs": runs}
 
 

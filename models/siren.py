@@ -14,10 +14,41 @@ paper's setting diverged on our CPU prototype (DESIGN.md, measured notes).
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
 from torch import nn
+
+
+@contextlib.contextmanager
+def _onednn_bf16():
+    """oneDNN's float32 products with bfloat16 inputs inside the kernel (fp32 accumulation and result)."""
+    mm = torch.backends.mkldnn.matmul
+    before = mm.fp32_precision
+    mm.fp32_precision = "bf16"
+    try:
+        yield
+    finally:
+        mm.fp32_precision = before
+
+
+class _OneDnnBf16Product(torch.autograd.Function):
+    """``x @ w.T`` and its two backward products with bfloat16 inputs, float32 in and out (CPU)."""
+
+    @staticmethod
+    def forward(ctx, x, w):
+        ctx.save_for_backward(x, w)
+        with _onednn_bf16():
+            return x @ w.T
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, w = ctx.saved_tensors
+        with _onednn_bf16():
+            gx = grad @ w if ctx.needs_input_grad[0] else None
+            gw = grad.T @ x
+        return gx, gw
 
 
 class SineLayer(nn.Module):
@@ -33,6 +64,11 @@ class SineLayer(nn.Module):
         super().__init__()
         self.omega_0 = float(omega_0)
         self.is_first = is_first
+        self.matmul_dtype: torch.dtype | None = None
+        """Dtype of the product ``W x`` of a hidden layer (None = the weights' own, float32). With
+        ``torch.bfloat16`` the inputs and weights are rounded to bfloat16 for the product only; the
+        bias, the sine and the weights stay float32 (see :mod:`models.precision`). The first layer
+        ignores it: its 3 inputs cost nothing and ``omega_0 = 30`` would amplify their rounding."""
         self.linear = nn.Linear(in_features, out_features)
         with torch.no_grad():
             bound = 1.0 / in_features if is_first else math.sqrt(6.0 / in_features) / self.omega_0
@@ -47,9 +83,15 @@ class SineLayer(nn.Module):
         the (points x width) product, one elementwise pass less forward and backward; the function
         and the gradients with respect to W and b are the same.
         """
-        if self.omega_0 == 1.0:
-            return self.linear(x)
-        return torch.nn.functional.linear(x, self.linear.weight * self.omega_0, self.linear.bias * self.omega_0)
+        weight, bias = self.linear.weight, self.linear.bias
+        if self.omega_0 != 1.0:
+            weight, bias = weight * self.omega_0, bias * self.omega_0
+        low = self.matmul_dtype
+        if low is not None and not self.is_first and low != x.dtype:
+            if x.device.type == "cpu" and low == torch.bfloat16:
+                return _OneDnnBf16Product.apply(x, weight) + bias
+            return torch.nn.functional.linear(x.to(low), weight.to(low)).to(x.dtype) + bias
+        return torch.nn.functional.linear(x, weight, bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.sin(self.preactivation(x))

@@ -15,7 +15,11 @@ Presets (:data:`PRESETS`):
   the skin loss is quadratic in E's output layer, so its least-squares optimum is one small
   linear solve (width x width) instead of thousands of Adam steps. The hidden sine layers step at
   3x the learning rate of the output layers (``hidden_lr_scale``, issue 13: on the sample actor
-  0.061 mm after 3,000 steps against 0.086 mm without it).
+  0.061 mm after 3,000 steps against 0.086 mm without it). The symmetry term (weight 1e-4) sees
+  the mirror images of 2,048 of the points, a new uniform draw each step (``symmetry_points``: a
+  step costs 15 % less). Where bfloat16 products are measured 2x faster than float32 (CPUs with
+  AMX, GPUs) the hidden layers multiply in bfloat16 for the first 85 % of the steps
+  (``hidden_matmul="auto"``, :mod:`models.precision`).
 * ``fast``: the same five networks and losses in 2,000 cheaper steps (issue 13; it ends at a
   higher error than ``default`` in a sixth of its CPU time, BENCHMARKS.md):
   E is solved before the first step (the expression field starts at the fit of the shape deltas)
@@ -29,7 +33,7 @@ Presets (:data:`PRESETS`):
   sine layers step at 3x the learning rate of the output layers (``hidden_lr_scale``: the
   previous preset's end error in 2.7x less CPU), and the symmetry term (weight 1e-4) sees the
   mirror images of 256 of the step's points, not all 2,048 (``symmetry_points``; 10 % cheaper
-  steps).
+  steps); bfloat16 products where they are faster, as in ``default``.
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ from models.aim import AIMConfig, AnatomicalFaceModel
 from models.checks import check_shapes
 from models.losses import (LossWeights, anatomy_losses, skin_position_loss, skinning_weight_loss,
                            symmetry_loss, thickness_regularizer)
+from models.precision import hidden_matmul_dtype, resolve_hidden_matmul
 from models.rotation import identity_6d, kabsch, matrix_to_rot6d, rot6d_to_matrix
 
 
@@ -70,9 +75,10 @@ class TrainSettings:
     """Fraction of the sampled points drawn in proportion to the current per-vertex error (known
     from the last closed-form solve), the rest uniformly; 0 = uniform sampling."""
     symmetry_points: int = 0
-    """Of the sampled points, how many (the first, a uniform subset of the step's draws) also carry
-    the symmetry term, whose B evaluation at the mirrored points is a third of a sampled step's
-    work for a term of weight 1e-4; 0 = all of them. Ignored when every point is used."""
+    """How many of the step's points also carry the symmetry term, whose B evaluation at the
+    mirrored points is a third of a sampled step's work (a seventh of a full step's) for a term of
+    weight 1e-4: of a sample the first (a uniform subset of its draws), of a step on every point a
+    uniform draw without repetition; 0 = all of them."""
     importance_reweight: bool = True
     """Weight each sampled point by ``1 / (V q)`` (q its probability) so that the per-point means
     of the losses stay unbiased estimates of the paper's means over all points."""
@@ -98,6 +104,14 @@ class TrainSettings:
     """Weight of ``mean (K(c_j) - 1)^2`` on points constrained to the jaw bone: the counterpart of
     the paper's forehead loss that tells the skinning which points ride on the mandible
     (0 = off, as in the paper)."""
+    hidden_matmul: str = "fp32"
+    """Precision of the hidden sine layers' products in Adam's steps: ``"fp32"``, ``"bf16"`` (inputs
+    and weights rounded to bfloat16 for the product, float32 otherwise) or ``"auto"`` (bfloat16
+    where this device multiplies it at least 2x faster, measured at the start; the choice is kept
+    in the checkpoint and the actor). See :mod:`models.precision`."""
+    hidden_matmul_until: float = 0.85
+    """With bfloat16 products, the fraction of the iterations that use them; the rest, every
+    closed-form solve and every evaluation run in float32, so the actor ends as a float32 fit."""
     seed: int = 0
     weights: LossWeights = field(default_factory=LossWeights)
 
@@ -116,10 +130,10 @@ class TrainSettings:
 
 
 PRESETS: dict[str, TrainSettings] = {
-    "default": TrainSettings(hidden_lr_scale=3.0),
+    "default": TrainSettings(hidden_lr_scale=3.0, symmetry_points=2048, hidden_matmul="auto"),
     "fast": TrainSettings(iterations=2000, points_per_step=2048, importance=0.5, importance_reweight=False,
                           expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True,
-                          freeze_solved_layers=True, hidden_lr_scale=3.0, symmetry_points=256),
+                          freeze_solved_layers=True, hidden_lr_scale=3.0, symmetry_points=256, hidden_matmul="auto"),
     "paper": TrainSettings(iterations=10_000, lr=2e-3, lr_final_fraction=1.0, width=256, depth=3,
                            first_omega_0=30.0, hidden_omega_0=30.0, expression_solve_every=0, anatomy_solve=False,
                            jaw_skinning_prior=0.0, points_per_step=0, importance=0.0, solve_at_start=False),
@@ -172,9 +186,12 @@ class TrainingData:
 class Sample:
     """The points of one stochastic step."""
 
-    index: torch.Tensor                    # (P,) template vertex indices (may repeat)
+    index: torch.Tensor | None             # (P,) template vertex indices (may repeat), None = every point
     weights: torch.Tensor | None           # (P,) importance weights 1 / (V q), None = uniform
     constraint_index: torch.Tensor | None  # (M',) constrained points used, None = all
+    symmetry_index: torch.Tensor | None = None
+    """(S,) positions among the step's points that carry the symmetry term; None = the first
+    ``symmetry_points`` of a sample (a uniform subset of its draws), or every point."""
 
 
 @dataclass
@@ -238,6 +255,8 @@ class ActorTrainer:
         self.optimizer = torch.optim.Adam(groups, lr=settings.lr)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self._lr_factor)
         self._init_jaw()
+        self.hidden_matmul = resolve_hidden_matmul(settings.hidden_matmul, self.device, config.width)
+        """The resolved ``hidden_matmul`` (``"fp32"`` or ``"bf16"``) of this training."""
         self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
         self.iteration = 0
         self._solved: set[torch.nn.Parameter] = set()  # output layers set by a closed-form solve
@@ -281,9 +300,12 @@ class ActorTrainer:
         """The points of one step: all (None), or ``points_per_step`` of them (see TrainSettings)."""
         s, n = self.settings, self.data.template.shape[0]
         p = s.points_per_step
-        if p <= 0 or p >= n:
-            return None
         g = self.generator
+        if p <= 0 or p >= n:
+            if 0 < s.symmetry_points < n:
+                sym = torch.randperm(n, generator=g)[:s.symmetry_points]
+                return Sample(None, None, None, sym.to(self.device))
+            return None
         weights = None
         if s.importance > 0 and self.vertex_error is not None:
             err = self.vertex_error.double().cpu()
@@ -302,9 +324,9 @@ class ActorTrainer:
         """Weighted loss terms on the points of ``sample`` (all when None); key ``total`` sums them.
 
         Each network runs only on the points its terms need: B, D and N on the skin and the
-        constrained points (B also on the mirrored skin for the symmetry term, or on the mirror
-        images of the first ``symmetry_points`` of a sample), K on the skin, forehead and jaw
-        points, E on the skin.
+        constrained points (B also on the mirror images of the points that carry the symmetry term:
+        all, or ``sample.symmetry_index``, or the first ``symmetry_points`` of a sample), K on the
+        skin, forehead and jaw points, E on the skin.
         """
         w, unit, d, model = self.settings.weights, self.settings.weights.length_unit_mm, self.data, self.model
         index = None if sample is None else sample.index
@@ -317,8 +339,11 @@ class ActorTrainer:
         thick_t = d.thickness_target if ci is None else d.thickness_target[ci]
         normal_t = d.normal_target if ci is None else d.normal_target[ci]
         m, mc, mf = c.shape[0], cc.shape[0], d.forehead_points.shape[0]
-        ns = m if sample is None or self.settings.symmetry_points <= 0 else min(m, self.settings.symmetry_points)
-        reflected = d.reflect(c[:ns])
+        sym = None if sample is None else sample.symmetry_index
+        if sym is None:
+            ns = m if sample is None or self.settings.symmetry_points <= 0 else min(m, self.settings.symmetry_points)
+            sym = slice(0, ns)
+        reflected = d.reflect(c[sym])
         x = model.normalize(torch.cat([c, cc, reflected], dim=0))
         out_b = model.B(x)
         out_d, out_n = model.D(x[:m + mc]), model.N(x[:m + mc])
@@ -333,8 +358,8 @@ class ActorTrainer:
             "skin": w.skin * skin_position_loss(pred, target, unit, pw),
             "bone": w.bone * lb, "thickness": w.thickness * ld, "normal": w.normal * ln,
             "thickness_reg": w.thickness_reg * thickness_regularizer(skin.thickness, unit, pw),
-            "symmetry": w.symmetry * symmetry_loss(bone_of_reflected, d.reflect(skin.bone[:ns]), unit,
-                                                   None if pw is None else pw[:ns]),
+            "symmetry": w.symmetry * symmetry_loss(bone_of_reflected, d.reflect(skin.bone[sym]), unit,
+                                                   None if pw is None else pw[sym]),
             "forehead": w.forehead_skinning * skinning_weight_loss(out_k[m:m + mf].squeeze(-1)),
         }
         if self.settings.jaw_skinning_prior > 0:
@@ -347,9 +372,13 @@ class ActorTrainer:
         self.model.train()
         if self.iteration == 0 and self.settings.solve_at_start:
             self.solve_output_layers(anatomy=False)
-        terms = self.losses(self._sample())
-        self.optimizer.zero_grad(set_to_none=True)
-        terms["total"].backward()
+        low = None
+        if self.hidden_matmul == "bf16" and self.iteration < self.settings.hidden_matmul_until * self.settings.iterations:
+            low = torch.bfloat16
+        with hidden_matmul_dtype(self.model, low):
+            terms = self.losses(self._sample())
+            self.optimizer.zero_grad(set_to_none=True)
+            terms["total"].backward()
         if self.settings.freeze_solved_layers:
             for p in self._solved:
                 p.grad = None  # Adam skips parameters without a gradient
@@ -525,7 +554,7 @@ class ActorTrainer:
             "jaw_rot6d": self.jaw_rot6d.detach().clone(), "jaw_t_units": self.jaw_t_units.detach().clone(),
             "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
             "generator": self.generator.get_state(), "iteration": self.iteration,
-            "vertex_error": self.vertex_error,
+            "vertex_error": self.vertex_error, "hidden_matmul": self.hidden_matmul,
             "solved_layers": sorted(n for n, p in self.model.named_parameters() if p in self._solved),
         }
 
@@ -539,6 +568,7 @@ class ActorTrainer:
         self.generator.set_state(state["generator"])
         self.iteration = int(state["iteration"])
         self.vertex_error = state.get("vertex_error")
+        self.hidden_matmul = state.get("hidden_matmul", "fp32")  # a resumed training keeps its precision
         solved = set(state.get("solved_layers", ()))
         self._solved = {p for n, p in self.model.named_parameters() if n in solved}
 

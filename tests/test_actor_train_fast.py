@@ -32,14 +32,15 @@ def trainer(tmp_path_factory):
     return tr
 
 
-def _reference_terms(tr: ActorTrainer, index=None, weights=None, con_index=None) -> dict[str, torch.Tensor]:
+def _reference_terms(tr: ActorTrainer, index=None, weights=None, con_index=None, symmetry=None) -> dict[str, torch.Tensor]:
     """The losses the readable way: every network on every point through ``model.forward``; the
-    symmetry term of a sample on its first ``symmetry_points`` draws."""
+    symmetry term of a sample on its first ``symmetry_points`` draws, or on the points ``symmetry``."""
     d, w, model = tr.data, tr.settings.weights, tr.model
     unit = w.length_unit_mm
     c = d.template if index is None else d.template[index]
     ns = len(c) if index is None or tr.settings.symmetry_points <= 0 else tr.settings.symmetry_points
-    ws = None if weights is None else weights[:ns]
+    sym = torch.arange(ns) if symmetry is None else symmetry
+    ws = None if weights is None else weights[sym]
     target = d.shapes if index is None else d.shapes[:, index]
     sel = slice(None) if con_index is None else con_index
     skin = model(c)
@@ -54,7 +55,7 @@ def _reference_terms(tr: ActorTrainer, index=None, weights=None, con_index=None)
         "bone": w.bone * lb, "thickness": w.thickness * ld, "normal": w.normal * ln,
         "thickness_reg": w.thickness_reg * per_point((skin.thickness / unit).square()),
         "symmetry": w.symmetry * per_mirrored((
-            (model.bone(d.reflect(c[:ns])) - d.reflect(skin.bone[:ns])) / unit).square().sum(-1)),
+            (model.bone(d.reflect(c[sym])) - d.reflect(skin.bone[sym])) / unit).square().sum(-1)),
         "forehead": w.forehead_skinning * skinning_weight_loss(model(d.forehead_points).skin_weight),
         "jaw": tr.settings.jaw_skinning_prior * skinning_weight_loss(model(d.jaw_points).skin_weight - 1),
     }
@@ -73,6 +74,18 @@ def test_losses_match_the_all_networks_reference(trainer):
         ref = _reference_terms(trainer, sample.index, sample.weights, sample.constraint_index)
         for name, value in ref.items():
             torch.testing.assert_close(fast[name], value, rtol=1e-4, atol=1e-9, msg=name)
+        # A step on every point with the symmetry term on a uniform subset of them.
+        full = ActorTrainer.__new__(ActorTrainer)
+        full.__dict__.update(trainer.__dict__, settings=replace(trainer.settings, points_per_step=0))
+        sample = full._sample()
+        assert sample.index is None and sample.weights is None and sample.constraint_index is None
+        sym = sample.symmetry_index
+        assert len(sym) == trainer.settings.symmetry_points == len(set(sym.tolist()))
+        fast = full.losses(sample)
+        ref = _reference_terms(full, symmetry=sym)
+        for name, value in ref.items():
+            torch.testing.assert_close(fast[name], value, rtol=1e-4, atol=1e-9, msg=name)
+        assert fast["symmetry"] != full.losses()["symmetry"]  # not all points
 
 
 def test_importance_sampling_is_unbiased_and_looks_where_the_error_is(trainer):

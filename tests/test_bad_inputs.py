@@ -595,6 +595,7 @@ TRAIN_CASES = {
     "train_forehead_range": lambda e, d: train_args(shapes_dir(e, d), d, "--forehead", region(d, "[99999999]")),
     "train_forehead_garbage": lambda e, d: train_args(shapes_dir(e, d), d, "--forehead", region(d, "[\"x\"]")),
     "train_preset": lambda e, d: train_args(shapes_dir(e, d), d, "--preset", "nope"),
+    "train_hidden_matmul": lambda e, d: train_args(shapes_dir(e, d), d, "--hidden-matmul", "half"),
     "train_iterations_zero": lambda e, d: ["actor", "train", str(d / "a"), "--shapes", str(shapes_dir(e, d)),
                                            "--iterations", "0", "--no-progress"],
     "train_sample_and_shapes": lambda e, d: ["actor", "train", str(d / "a"), "--sample", "--shapes", str(d)],

@@ -232,3 +232,9 @@ def test_bench_actor_quick(tmp_path):
         assert tr["iterations"] == (20 if r["preset"] == "fast" else 5) and tr["torch_threads"] == 1
         assert 0 < tr["train_cpu_seconds"] <= r["cpu_s"] and r["peak_mb"] > 0
         assert np.isfinite(q["mean_mm"]) and len(q["per_shape"]) == 20
+    # precisions side by side: the resolved choice is what was asked for
+    res = main(["--quick", "--out", str(tmp_path / "p"), "--actors", "fitted", "--presets", "fast",
+                "--hidden-matmul", "fp32,bf16"])
+    assert [(r["hidden_matmul"], r["meta"]["training"]["hidden_matmul"]) for r in res["runs"]] == [
+        ("fp32", "fp32"), ("bf16", "bf16")]
+    assert res["runs"][0]["meta"]["training"]["settings"]["hidden_matmul"] == "fp32"

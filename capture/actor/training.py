@@ -35,6 +35,7 @@ from capture.io.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
 from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
 from models.bone_estimate import estimate_bone_surface
 from models.face_frame import FaceFrame, estimate_face_frame, estimate_jaw_pivot, forehead_region
+from models.precision import HIDDEN_MATMUL
 from models.rotation import rot6d_to_matrix
 from models.train import PRESETS, ActorTrainer, Evaluation, TrainingData, TrainSettings, model_config_for
 
@@ -73,6 +74,8 @@ def resolve_settings(preset: str, overrides: dict) -> TrainSettings:
     settings = replace(base, **{k: v for k, v in overrides.items() if v is not None})
     if settings.iterations < 1 or settings.lr <= 0 or settings.width < 1 or settings.depth < 1:
         raise CaptureError("iterations, lr, width and depth must be positive")
+    if settings.hidden_matmul not in HIDDEN_MATMUL:
+        raise CaptureError(f"unknown --hidden-matmul '{settings.hidden_matmul}': use one of {', '.join(HIDDEN_MATMUL)}")
     return settings
 
 
@@ -311,7 +314,8 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
         "training": {"preset": options.preset, "settings": settings.to_dict(), "iterations": trainer.iteration,
                      "train_seconds": train_seconds, "train_cpu_seconds": train_cpu_seconds,
                      "prepare_seconds": prep_seconds, "device": options.device,
-                     "torch_threads": threads_used, "load_average": list(_load_average())},
+                     "torch_threads": threads_used, "hidden_matmul": trainer.hidden_matmul,
+                     "load_average": list(_load_average())},
         "quality": _evaluation_metadata(ev, shapes.names),
         "anatomy_constraints": {"count": int(len(con.thickness)), "coverage": float(con.coverage),
                                 "candidates": int(con.n_candidates),

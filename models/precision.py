@@ -1,0 +1,93 @@
+"""Reduced-precision products in the hidden SIREN layers, where the hardware makes them faster.
+
+Training an actor is compute-bound on the ``(points x 256) @ (256 x 256)`` products of the hidden
+sine layers (67 % of a float32 step). CPUs with AMX (and GPUs) multiply bfloat16 matrices many times
+faster than float32 ones: on a 2-core Sapphire Rapids 5-7x for one such product, a whole training
+step 1.5-1.75x (BENCHMARKS.md, issue 13). Rounding the products' inputs to bfloat16 (8 bits of
+mantissa) perturbs a pre-activation by about 0.2 % of its size; on the sample actor that costs
+2-3 % of error at an equal number of steps, so the trainer uses it for the first part of a training
+only and finishes, solves and evaluates in float32 (:class:`models.train.TrainSettings`
+``hidden_matmul``). On the CPU the products run through oneDNN with float32 tensors in and out and
+bfloat16 inside the kernel (:class:`models.siren.SineLayer`), elsewhere on bfloat16 copies.
+
+Whether bfloat16 is faster is measured, not guessed from CPU flags: without AMX or AVX-512 BF16,
+oneDNN emulates it and it is slower than float32.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+
+import torch
+
+from models.siren import SineLayer
+
+HIDDEN_MATMUL = ("fp32", "bf16", "auto")
+_SPEEDUP_CACHE: dict[tuple[str, int, int], float] = {}
+
+
+def hidden_layers(module: torch.nn.Module) -> list[SineLayer]:
+    """The hidden (not first) sine layers of every SIREN in ``module``."""
+    return [m for m in module.modules() if isinstance(m, SineLayer) and not m.is_first]
+
+
+@contextlib.contextmanager
+def hidden_matmul_dtype(module: torch.nn.Module, dtype: torch.dtype | None):
+    """Within the block, the hidden sine layers of ``module`` multiply in ``dtype`` (None = float32);
+    the previous setting is restored after it."""
+    layers = hidden_layers(module)
+    before = [layer.matmul_dtype for layer in layers]
+    for layer in layers:
+        layer.matmul_dtype = dtype
+    try:
+        yield
+    finally:
+        for layer, d in zip(layers, before):
+            layer.matmul_dtype = d
+
+
+def bf16_speedup(device: torch.device | str = "cpu", width: int = 256, rows: int = 8192) -> float:
+    """Measured time of a float32 ``(rows x width) @ (width x width)`` product over the bfloat16 one
+    (best of 5 after a warm-up), on ``device`` with the current thread count; cached per process."""
+    device = torch.device(device)
+    key = (str(device), width, torch.get_num_threads())
+    if key in _SPEEDUP_CACHE:
+        return _SPEEDUP_CACHE[key]
+    g = torch.Generator(device="cpu").manual_seed(0)
+    a = torch.rand(rows, width, generator=g).to(device)
+    b = torch.rand(width, width, generator=g).to(device)
+
+    def best(x, y) -> float:
+        times = []
+        for i in range(7):
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            t = time.perf_counter()
+            x @ y
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            if i >= 2:
+                times.append(time.perf_counter() - t)
+        return min(times)
+
+    try:
+        fast = best(a.bfloat16(), b.bfloat16())
+    except RuntimeError:  # a backend without bfloat16 products
+        fast = float("inf")
+    speedup = best(a, b) / fast if fast > 0 else 1.0
+    _SPEEDUP_CACHE[key] = speedup
+    return speedup
+
+
+def resolve_hidden_matmul(setting: str, device: torch.device | str = "cpu", width: int = 256,
+                          min_speedup: float = 2.0) -> str:
+    """``"fp32"`` or ``"bf16"`` for a :class:`TrainSettings` ``hidden_matmul`` of ``setting``:
+    ``"auto"`` is ``"bf16"`` where a bfloat16 product of the layers' size is at least
+    ``min_speedup`` times faster than a float32 one (the whole step gains less: conversions, sines
+    and the output layers stay float32)."""
+    if setting not in HIDDEN_MATMUL:
+        raise ValueError(f"hidden_matmul must be one of {', '.join(HIDDEN_MATMUL)}, got {setting!r}")
+    if setting != "auto":
+        return setting
+    return "bf16" if bf16_speedup(device, width) >= min_speedup else "fp32"
