@@ -2,8 +2,8 @@
 
 Training an actor is compute-bound on the ``(points x 256) @ (256 x 256)`` products of the hidden
 sine layers (67 % of a float32 step). CPUs with AMX (and GPUs) multiply bfloat16 matrices many times
-faster than float32 ones: on a 2-core Sapphire Rapids 5-7x for one such product, a whole training
-step 1.5-1.75x (BENCHMARKS.md, issue 13). Rounding the products' inputs to bfloat16 (8 bits of
+faster than float32 ones: on a 2-core Xeon with AMX 5-7x for one such product, a whole training
+step 1.4-1.5x (BENCHMARKS.md, issue 13). Rounding the products' inputs to bfloat16 (8 bits of
 mantissa) perturbs a pre-activation by about 0.2 % of its size; on the sample actor that costs
 2-3 % of error at an equal number of steps, so the trainer uses it for the first part of a training
 only and finishes, solves and evaluates in float32 (:class:`models.train.TrainSettings`
