@@ -10,22 +10,19 @@ from dataclasses import replace
 import pytest
 import torch
 
-from capture.actor.training import TrainingProgress, TrainOptions, prepare, progress_line, resolve_settings, time_left
-from capture.io.meshes import load_shape_dir
+from capture.actor.training import TrainingProgress, progress_line, resolve_settings, time_left
 from models.losses import anatomy_losses, skinning_weight_loss
 from models.train import ActorTrainer, model_config_for
-from tests.tiny_actor import write_tiny_actor_inputs
+from tests.tiny_actor import tiny_training_data
 
 
 @pytest.fixture(scope="module")
 def trainer(tmp_path_factory):
     root = tmp_path_factory.mktemp("fast")
-    shapes, skull, jaw = write_tiny_actor_inputs(root)
-    options = TrainOptions(actor="x", shapes=shapes, skull=skull, jaw=jaw)
-    data, extras = prepare(options, load_shape_dir(shapes), report=lambda m: None)
+    data, pivot = tiny_training_data(root)
     settings = resolve_settings("fast", dict(width=32, iterations=100, points_per_step=400, importance=0.5,
                                                 importance_reweight=True, symmetry_points=150))
-    tr = ActorTrainer(data, settings, model_config_for(data, settings, extras["jaw_pivot"]))
+    tr = ActorTrainer(data, settings, model_config_for(data, settings, pivot))
     for _ in range(10):  # away from the initialisation
         tr.step()
     tr.solve_output_layers()  # also sets the per-vertex error that importance sampling uses

@@ -10,12 +10,11 @@ import pytest
 import torch
 
 import models.precision as precision
-from capture.actor.training import TrainOptions, prepare, resolve_settings
-from capture.io.meshes import load_shape_dir
+from capture.actor.training import resolve_settings
 from models.precision import hidden_layers, hidden_matmul_dtype, resolve_hidden_matmul
 from models.siren import SineLayer, Siren
 from models.train import ActorTrainer, model_config_for
-from tests.tiny_actor import write_tiny_actor_inputs
+from tests.tiny_actor import tiny_training_data
 
 
 def _net():
@@ -94,10 +93,7 @@ def test_bf16_speedup_is_a_positive_measurement():
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     root = tmp_path_factory.mktemp("bf16")
-    shapes, skull, jaw = write_tiny_actor_inputs(root)
-    options = TrainOptions(actor="x", shapes=shapes, skull=skull, jaw=jaw)
-    data, extras = prepare(options, load_shape_dir(shapes), report=lambda m: None)
-    return data, extras["jaw_pivot"]
+    return tiny_training_data(root)
 
 
 def _trainer(tiny, **overrides):

@@ -5,22 +5,19 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from capture.actor.training import TrainOptions, prepare, resolve_settings
-from capture.io.meshes import load_shape_dir
+from capture.actor.training import resolve_settings
 from models.rotation import kabsch
 from models.train import ActorTrainer, model_config_for
-from tests.tiny_actor import write_tiny_actor_inputs
+from tests.tiny_actor import tiny_training_data
 
 
 @pytest.fixture(scope="module")
 def trainer(tmp_path_factory):
     root = tmp_path_factory.mktemp("solve")
-    shapes, skull, jaw = write_tiny_actor_inputs(root)
-    options = TrainOptions(actor="x", shapes=shapes, skull=skull, jaw=jaw)
-    data, extras = prepare(options, load_shape_dir(shapes), report=lambda m: None)
+    data, pivot = tiny_training_data(root)
     settings = resolve_settings("default", dict(width=48, iterations=1000))
     torch.manual_seed(0)
-    tr = ActorTrainer(data, settings, model_config_for(data, settings, extras["jaw_pivot"]))
+    tr = ActorTrainer(data, settings, model_config_for(data, settings, pivot))
     for _ in range(20):  # away from the initialisation, before any solve (first at 100)
         tr.step()
     return tr

@@ -63,6 +63,18 @@ def write_tiny_actor_inputs(root: Path, units_scale: float = 1.0, fmt: str = "pl
     return sdir, paths[0], paths[1]
 
 
+def tiny_training_data(root: Path):
+    """The tiny actor's inputs written under ``root`` and prepared as the trainer sees them:
+    ``(TrainingData, jaw pivot)`` (face frame, forehead and constraints as ``capture actor train``)."""
+    from capture.actor.training import TrainOptions, prepare
+    from capture.io.meshes import load_shape_dir
+
+    shapes, skull, jaw = write_tiny_actor_inputs(root)
+    data, extras = prepare(TrainOptions(actor="x", shapes=shapes, skull=skull, jaw=jaw), load_shape_dir(shapes),
+                           report=lambda m: None)
+    return data, extras["jaw_pivot"]
+
+
 def train_tiny_actor(root: Path, iterations: int = 100, width: int = 64, name: str = "tiny",
                      proportions: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Path:
     """Write the inputs under ``root`` and train the tiny actor through the command line; its folder."""
