@@ -12,6 +12,11 @@ method gets the SAME landmarks:
 * ``AIM previous default`` (``--previous``): the default preset as it was before issue 12;
 * ``GBS19 [0,1]``: per frame rigid pose + the actor's 19 training shapes (exact ICT deltas), weights
   in [0, 1] (the blendshape rig an animator would use; the baseline);
+* ``GBS19+mirrored [0,1]`` (``--mirrored-baseline``): the same with the 19 shapes plus the mirrors of the
+  one-sided ones, as ``capture actor train`` adds them (:func:`capture.actor.training.with_mirrored_shapes`):
+  the baseline with the same span as a mirrored actor;
+* ``--compare-actor A``: a second actor fitted with the same preset on the same landmarks (e.g. the same
+  shapes trained with ``--no-mirror``), labelled with its folder name;
 * ``GBS53 [0,1] (bound)``: the same with all 53 ICT shapes: the truth's own span, what the
   landmarks can tell at best with a per-frame solve;
 * ``AIM paper``: the paper preset on the first ``--paper-frames`` frames of each sequence with
@@ -69,6 +74,19 @@ def region_masks(ident) -> dict[str, np.ndarray]:
     return out
 
 
+def mirrored_basis(ident, training: list[str], faces: np.ndarray) -> np.ndarray:
+    """``(K, V, 3)``: the training deltas plus the mirrors of the one-sided ones, as actor training adds them."""
+    from capture.actor.training import with_mirrored_shapes
+    from capture.io.meshes import ShapeSet
+    from models.face_frame import estimate_face_frame
+
+    verts = np.stack([ident.neutral] + [ident.neutral + ident.deltas[n] for n in training])
+    shapes = ShapeSet(["neutral"] + list(training), verts, np.asarray(faces, np.int64), [])
+    out, added = with_mirrored_shapes(shapes, estimate_face_frame(ident.neutral, shapes.faces))
+    print(f"mirrored baseline: {len(training)} + {len(added)} shapes ({', '.join(added)})")
+    return out.vertices[1:] - ident.neutral
+
+
 def previous_default():
     """The ``default`` preset before issue 12 (jaw prior 0.01, pseudo-Huber scale 3 px, no coefficient field)."""
     from models.fit import FitSettings
@@ -122,6 +140,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--configs", default="1000:0.5,1000:1.5,300:0.5,300:1.5", help="landmarks:noise_px, ...")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--previous", action="store_true", help="also the default preset as it was before issue 12")
+    ap.add_argument("--compare-actor", default=None, help="a second actor fitted side by side (same preset)")
+    ap.add_argument("--mirrored-baseline", action="store_true",
+                    help="also GBS with the 19 shapes plus the mirrors of the one-sided ones")
     ap.add_argument("--no-bound", action="store_true", help="skip GBS53 (the slowest baseline)")
     ap.add_argument("--paper-frames", type=int, default=0, help="frames per sequence for the paper preset (0: skip)")
     ap.add_argument("--paper-iterations", type=int, default=1000)
@@ -149,6 +170,9 @@ def main(argv: list[str] | None = None) -> dict:
     faces = np.asarray(actor.template.faces)
     masks = region_masks(ident)
     bases = {"GBS19 [0,1]": np.stack([ident.deltas[n] for n in training])}
+    if args.mirrored_baseline:
+        bases["GBS19+mirrored [0,1]"] = mirrored_basis(ident, training, faces)
+    other = load_actor(args.compare_actor) if args.compare_actor else None
     if not args.no_bound:
         bases["GBS53 [0,1] (bound)"] = np.stack(list(ident.deltas.values()))
     paper = replace(FIT_PRESETS["paper"], iterations=args.paper_iterations, warm_iterations=None)
@@ -166,6 +190,9 @@ def main(argv: list[str] | None = None) -> dict:
             row = {"sequence": s, "methods": {}}
             V, rms, sec = fit_aim(actor, take, idx, settings, args.window, args.overlap)
             row["methods"][f"AIM {args.preset}"] = figures(V, truth, rms, masks, sec)
+            if other is not None:
+                V, rms, sec = fit_aim(other, take, idx, settings, args.window, args.overlap)
+                row["methods"][f"AIM {args.preset} [{Path(args.compare_actor).name}]"] = figures(V, truth, rms, masks, sec)
             if args.previous:
                 V, rms, sec = fit_aim(actor, take, idx, previous_default(), args.window, args.overlap)
                 row["methods"]["AIM previous default"] = figures(V, truth, rms, masks, sec)

@@ -72,7 +72,8 @@ def expression_order(source_meta: dict, target_meta: dict) -> list[int]:
         raise CaptureError(
             f"actors '{sa}' ({len(a)} expressions) and '{sb}' ({len(b)}) do not correspond: '{sb}' lacks "
             f"{missing or 'none'} and has extra {extra or 'none'}; retargeting needs both actors learned from "
-            f"the same expression shapes (same names)")
+            f"the same expression shapes (same names; mirrored shapes count: train both with or both without "
+            f"--no-mirror)")
     return [b.index(name) for name in a]
 
 

@@ -1,8 +1,9 @@
 """Build the test fixture tests/data/ict_b_actor: a second ICT FaceKit identity ("B") learnt at small settings.
 
-B's shapes are the bundled sample identity's 19 expressions (plus neutral) with the identity difference
-added: the sample identity's coefficients negated on the 100 ICT identity modes (``_ict_identity_b`` in
-benchmarks/bench_retarget.py; ICT is linear, so every expression is the sample's plus the same offset).
+B's shapes are the bundled sample identity's 19 expressions (plus neutral; training adds their 5 mirrored
+shapes, as for the demo actor) with the identity difference added: the sample identity's coefficients
+negated on the 100 ICT identity modes (``_ict_identity_b`` in benchmarks/bench_retarget.py; ICT is linear,
+so every expression is the sample's plus the same offset).
 B is trained once with ``capture actor train`` (SIREN width 64, 600 iterations, estimated bones) and the
 package is committed, so tests/test_retarget_ict.py needs neither the ICT source data nor training time.
 
@@ -48,9 +49,13 @@ def main() -> None:
                   "--no-progress"])
         if rc != 0:
             raise SystemExit(f"capture actor train failed with status {rc}")
+        readme = args.out / "README.md"          # the fixture's description is kept across rebuilds
+        kept = readme.read_text() if readme.is_file() else None
         if args.out.exists():
             shutil.rmtree(args.out)
         shutil.copytree(work, args.out)
+        if kept is not None:
+            readme.write_text(kept)
         # The shapes were temporary: record where they came from instead of a dead path.
         meta_path = args.out / "actor.json"
         text = meta_path.read_text().replace(str(Path(tmp) / "ict_b_shapes"), "<scripts/make_ict_b_actor.py>")

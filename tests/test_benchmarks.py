@@ -231,7 +231,9 @@ def test_bench_actor_quick(tmp_path):
         tr, q = r["meta"]["training"], r["meta"]["quality"]
         assert tr["iterations"] == (20 if r["preset"] == "fast" else 5) and tr["torch_threads"] == 1
         assert 0 < tr["train_cpu_seconds"] <= r["cpu_s"] and r["peak_mb"] > 0
-        assert np.isfinite(q["mean_mm"]) and len(q["per_shape"]) == 20
+        # the sample's 20 scans and the mirrors of its 5 one-sided expressions (capture actor train's default)
+        assert len(r["meta"]["source"]["mirrored_shapes"]) == 5
+        assert np.isfinite(q["mean_mm"]) and len(q["per_shape"]) == 25
     # precisions side by side: the resolved choice is what was asked for
     res = main(["--quick", "--out", str(tmp_path / "p"), "--actors", "fitted", "--presets", "fast",
                 "--hidden-matmul", "fp32,bf16"])

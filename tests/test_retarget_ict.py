@@ -1,7 +1,7 @@
 """``capture retarget`` between two ICT FaceKit identities (issue 7).
 
-A is the bundled demo actor (the ICT sample identity, 9,409 vertices, 19 expressions, default preset);
-B is a second ICT identity with the same 19 expressions (the sample's identity coefficients negated on
+A is the bundled demo actor (the ICT sample identity, 9,409 vertices, 19 expressions + 5 mirrored, default preset);
+B is a second ICT identity with the same expressions (the sample's identity coefficients negated on
 the 100 ICT identity modes), learnt once by scripts/make_ict_b_actor.py (width 64, 600 iterations,
 estimated bones) and committed as tests/data/ict_b_actor (no ICT source data or training needed here).
 A 6-frame take of A posed with known parameters (head transform, jaw opening, expression coefficients at
@@ -33,7 +33,7 @@ CURVES = {  # expression: weights over the take (partial, overlapping)
 
 
 def _known_params(names: list[str]):
-    """Head (R (T,3,3), t (T,3) mm), jaw rot6d (T,6) 0..12 deg about x, jaw t (T,3), coefficients (T,19)."""
+    """Head (R (T,3,3), t (T,3) mm), jaw rot6d (T,6) 0..12 deg about x, jaw t (T,3), coefficients (T, E)."""
     head_R = Rotation.from_euler("yx", np.stack([np.linspace(-8, 8, T), np.linspace(3, -3, T)], 1),
                                  degrees=True).as_matrix()
     head_t = np.stack([np.linspace(-5, 5, T), np.linspace(2, -2, T), np.full(T, 600.0)], 1)

@@ -35,6 +35,7 @@ from capture.io.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
 from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
 from models.bone_estimate import estimate_bone_surface
 from models.face_frame import FaceFrame, estimate_face_frame, estimate_jaw_pivot, forehead_region
+from models.mirror import ONE_SIDED_THRESHOLD, mirror_displacements, mirror_points, mirrored_name, one_sided
 from models.precision import HIDDEN_MATMUL
 from models.rotation import rot6d_to_matrix
 from models.train import PRESETS, ActorTrainer, Evaluation, TrainingData, TrainSettings, model_config_for
@@ -61,6 +62,7 @@ class TrainOptions:
     overwrite: bool = False
     checkpoint_seconds: float = 60.0
     eval_every: int = 50
+    mirror: bool = True                  # add the other side of one-sided shapes (models.mirror)
 
 
 def resolve_settings(preset: str, overrides: dict) -> TrainSettings:
@@ -109,8 +111,34 @@ def _constraint_template_points(con: AnatomyConstraints, template: np.ndarray, f
     return np.einsum("mk,mkc->mc", con.barycentric, tri)
 
 
+def with_mirrored_shapes(shapes: ShapeSet, frame: FaceFrame) -> tuple[ShapeSet, dict]:
+    """``shapes`` plus the other side of each one-sided expression (:mod:`models.mirror`), and what was added:
+    ``{new name: {"from": source name, "residual": relative residual against the given shapes}}``."""
+    neutral = shapes.neutral
+    v0 = shapes.vertices[0]
+
+    def closest(points):
+        pts, _, tri = trimesh.proximity.closest_point(neutral, points)
+        return pts, tri
+
+    mmap = mirror_points(v0, shapes.faces, frame.symmetry_normal, frame.symmetry_offset, closest)
+    disp = shapes.vertices[1:] - v0
+    mirrored = mirror_displacements(disp, shapes.faces, mmap, frame.symmetry_normal)
+    residual = one_sided(disp, mirrored)
+    names, verts, added = list(shapes.names), [shapes.vertices], {}
+    for k in np.flatnonzero(residual > ONE_SIDED_THRESHOLD):
+        name = mirrored_name(shapes.names[k + 1], set(names))
+        names.append(name)
+        verts.append((v0 + mirrored[k])[None])
+        added[name] = {"from": shapes.names[k + 1], "residual": round(float(residual[k]), 3)}
+    return replace(shapes, names=names, vertices=np.concatenate(verts)), added
+
+
 def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], None]):
-    """Face frame, forehead, bones and constraints for ``shapes`` -> (TrainingData, extras dict)."""
+    """Face frame, forehead, bones and constraints for ``shapes`` -> (TrainingData, extras dict).
+
+    With ``options.mirror`` the other side of each one-sided shape is added (``extras["shapes"]`` is the set
+    trained on, ``extras["mirrored"]`` says what was added)."""
     neutral = shapes.neutral
     V = len(neutral.vertices)
     frame = estimate_face_frame(neutral.vertices, neutral.faces)
@@ -123,6 +151,12 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
         norm = np.linalg.norm(n)
         frame = replace(frame, symmetry_normal=n / norm, symmetry_offset=float(off) / norm)
         frame_source = "given by --symmetry-plane"
+    mirrored: dict = {}
+    if options.mirror:
+        shapes, mirrored = with_mirrored_shapes(shapes, frame)
+        if mirrored:
+            report("mirrored shapes added (the other side of one-sided expressions): " +
+                   ", ".join(f"{n} from {m['from']}" for n, m in mirrored.items()))
     if options.forehead is not None:
         fore_idx = read_vertex_list(options.forehead, V, "forehead")
         fore_source = f"file {options.forehead}"
@@ -165,7 +199,7 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
     )
     extras = dict(frame=frame, frame_source=frame_source, forehead_idx=fore_idx, forehead_source=fore_source,
                   bones=bones, bones_estimated=estimated, constraints=con, jaw_pivot=pivot,
-                  trusted_source=trusted_source)
+                  trusted_source=trusted_source, shapes=shapes, mirrored=mirrored)
     return data, extras
 
 
@@ -219,7 +253,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     resolved = {
         "preset": options.preset, "settings": settings.to_dict(), "units": options.units,
         "bone_units": options.bone_units or options.units, "neutral": shapes.names[0],
-        "symmetry_plane": options.symmetry_plane,
+        "symmetry_plane": options.symmetry_plane, "mirror": options.mirror,
     }
     fingerprint = _fingerprint(inputs, resolved)
     train_dir = out / TRAINING_DIR
@@ -238,6 +272,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
 
     t_prep = time.perf_counter()
     data, extras = prepare(options, shapes, report)
+    shapes = extras["shapes"]
     con: AnatomyConstraints = extras["constraints"]
     report(f"anatomy constraints: {len(con.thickness)} points ({100 * con.coverage:.1f} % of {con.n_vertices} "
            f"vertices), thickness median {np.median(con.thickness):.1f} mm")
@@ -308,6 +343,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
         "shape_names": shapes.names, "neutral": shapes.names[0],
         "n_vertices": int(shapes.vertices.shape[1]), "n_faces": int(len(shapes.faces)),
         "source": {"shapes": str(options.shapes), "files": [str(p) for p in shapes.files],
+                   "mirrored_shapes": extras["mirrored"],
                    "units": options.units, "skull": str(options.skull) if options.skull else None,
                    "jaw": str(options.jaw) if options.jaw else None, "bones_estimated": extras["bones_estimated"]},
         "model": config.to_dict(),

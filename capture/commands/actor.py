@@ -48,6 +48,7 @@ def train_command(
     seed: Optional[int] = typer.Option(None, help="Random seed (default: from the preset)."),
     hidden_matmul: Optional[str] = typer.Option(None, "--hidden-matmul", help="Precision of the hidden layers' products in the first 85 % of the steps: fp32, bf16, or auto (bf16 where this machine multiplies it 2x faster, e.g. CPUs with AMX; default: from the preset). Solves, evaluations and the last steps are float32."),
     symmetry_plane: Optional[str] = typer.Option(None, help="Override the estimated symmetry plane: nx,ny,nz,offset_mm."),
+    mirror: bool = typer.Option(True, "--mirror/--no-mirror", help="Also learn the other side of one-sided expressions (mouthStretch_L without mouthStretch_R: its scan reflected across the symmetry plane), so that fits can use both sides."),
     forehead: Optional[Path] = typer.Option(None, help="File of forehead vertex indices (JSON list or integers) overriding the automatic region."),
     trusted: Optional[Path] = typer.Option(None, help="File of vertex indices where skin-to-bone constraints are trusted (default: automatic, away from open borders)."),
     device: str = typer.Option("cpu", help="Torch device, e.g. cpu or cuda."),
@@ -74,7 +75,7 @@ def train_command(
         preset=preset, overrides=dict(iterations=iterations, lr=lr, width=width, depth=depth,
                                       points_per_step=points_per_step, seed=seed, hidden_matmul=hidden_matmul),
         symmetry_plane=_parse_plane(symmetry_plane), forehead=forehead, trusted=trusted, device=device,
-        overwrite=overwrite, threads=threads)
+        overwrite=overwrite, threads=threads, mirror=mirror)
     console = Console(stderr=True)
     path = train_actor(options, TrainingProgress(enabled=progress), report=lambda m: console.print(m, highlight=False))
     _show(str(path), Console())
@@ -172,6 +173,10 @@ def _show_metadata(actor, meta: dict, console: Console) -> None:
 
     if edit_summary(meta):
         console.print(edit_summary(meta), highlight=False)
+    mirrored = meta.get("source", {}).get("mirrored_shapes") or {}
+    if mirrored:
+        console.print("mirrored shapes (the other side of one-sided scans, learned from their reflection): " +
+                      ", ".join(f"{n} from {m['from']}" for n, m in mirrored.items()), highlight=False)
     table = Table("shape", "mean error mm", "max error mm", title="training error per shape")
     for name, e in q["per_shape"].items():
         table.add_row(name, f"{e['mean_mm']:.4f}", f"{e['max_mm']:.3f}")
