@@ -82,7 +82,7 @@ def mirrored_basis(ident, training: list[str], faces: np.ndarray) -> np.ndarray:
 
     verts = np.stack([ident.neutral] + [ident.neutral + ident.deltas[n] for n in training])
     shapes = ShapeSet(["neutral"] + list(training), verts, np.asarray(faces, np.int64), [])
-    out, added = with_mirrored_shapes(shapes, estimate_face_frame(ident.neutral, shapes.faces))
+    out, added, asym = with_mirrored_shapes(shapes, estimate_face_frame(ident.neutral, shapes.faces))
     print(f"mirrored baseline: {len(training)} + {len(added)} shapes ({', '.join(added)})")
     return out.vertices[1:] - ident.neutral
 

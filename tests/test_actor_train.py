@@ -228,7 +228,51 @@ def test_one_sided_shape_gets_its_mirror(tmp_path, capsys):
         meta = json.loads((actor / "actor.json").read_text())
         assert [n for n in meta["shape_names"] if n.startswith("smirk")] == names
         assert list(meta["source"]["mirrored_shapes"]) == names[1:]
+        assert (meta["source"]["mirror_asymmetry"] is None) == (not names[1:])
         assert len(meta["jaw_transforms"]) == len(meta["shape_names"]) - 1 == load_actor(str(actor)).config.n_expressions
         main(["actor", "show", str(actor)])
         shown = " ".join(capsys.readouterr().out.split())
         assert ("smirk_R from smirk_L" in shown) == bool(names[1:]), shown
+
+
+def test_unfinished_training_without_mirrors_says_how_to_resume(tmp_path, monkeypatch, capsys):
+    """A training interrupted under ``--no-mirror`` (or begun before mirrors were the default: the same
+    fingerprint) is not resumed with other shapes: the default run names ``--no-mirror``, which resumes it."""
+    shapes, skull, jaw, _, _ = _one_sided_inputs(tmp_path)
+    args = ["--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw), "--iterations", "6", *FAST]
+    from models import train as train_mod
+
+    original = train_mod.ActorTrainer.step
+
+    def interrupting_step(self):
+        if self.iteration == 3:
+            raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(train_mod.ActorTrainer, "step", interrupting_step)
+    actor = tmp_path / "a"
+    assert main(["actor", "train", str(actor), *args, "--no-mirror"]) == 130
+    monkeypatch.setattr(train_mod.ActorTrainer, "step", original)
+    capsys.readouterr()
+    assert main(["actor", "train", str(actor), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--no-mirror to resume it" in err, err
+    assert main(["actor", "train", str(actor), *args, "--no-mirror"]) == 0
+    assert "resuming training" in capsys.readouterr().err
+    meta = json.loads((actor / "actor.json").read_text())
+    assert "smirk_R" not in meta["shape_names"] and meta["training"]["iterations"] == 6
+
+
+def test_asymmetric_plane_warns_that_mirrors_are_rough(tmp_path):
+    """A symmetry plane 5 mm off the face's own puts the reflected neutral ~10 mm from itself: the run says
+    the mirrored shapes are rough; the face's own plane gives no warning."""
+    from capture.actor.training import MIRROR_ASYMMETRY_WARN_MM, TrainOptions, prepare
+    from capture.io.meshes import load_shape_dir
+
+    shapes, skull, jaw, _, _ = _one_sided_inputs(tmp_path)
+    for plane, warned in ((None, False), ((1.0, 0.0, 0.0, 5.0), True)):
+        said = []
+        _, extras = prepare(TrainOptions(actor="x", shapes=shapes, skull=skull, jaw=jaw, symmetry_plane=plane),
+                            load_shape_dir(shapes), report=said.append)
+        assert (extras["mirror_asymmetry"]["median_mm"] > MIRROR_ASYMMETRY_WARN_MM) == warned
+        assert any("mirrored shapes are rough" in m for m in said) == warned, said

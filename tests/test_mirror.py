@@ -132,7 +132,8 @@ def test_sample_mirrors_are_the_other_sides_scans():
         size = np.linalg.norm(d_right, axis=1)
         # ICT's identity is nearly symmetric (mirror distance median ~0.8 mm): the other side within 10 % of its motion
         assert err.mean() < 0.1 * size.mean(), (left, err.mean(), size.mean())
-    out, added = with_mirrored_shapes(shapes, frame)
+    out, added, asym = with_mirrored_shapes(shapes, frame)
+    assert 0 < asym["median_mm"] < 0.5 and asym["median_mm"] <= asym["p90_mm"] < 1.5   # ICT: 0.2 / 0.7 mm
     assert set(added) == {"browOuterUp_R", "cheekPuff_L", "mouthFrown_L", "mouthStretch_R", "noseSneer_R"}
     assert {a["from"] for a in added.values()} == {"browOuterUp_L", "cheekPuff_R", "mouthFrown_R",
                                                    "mouthStretch_L", "noseSneer_L"}

@@ -111,9 +111,15 @@ def _constraint_template_points(con: AnatomyConstraints, template: np.ndarray, f
     return np.einsum("mk,mkc->mc", con.barycentric, tri)
 
 
-def with_mirrored_shapes(shapes: ShapeSet, frame: FaceFrame) -> tuple[ShapeSet, dict]:
-    """``shapes`` plus the other side of each one-sided expression (:mod:`models.mirror`), and what was added:
-    ``{new name: {"from": source name, "residual": relative residual against the given shapes}}``."""
+#: Median distance (mm) of the reflected neutral from itself above which the mirrored shapes are flagged as rough.
+MIRROR_ASYMMETRY_WARN_MM = 2.0
+
+
+def with_mirrored_shapes(shapes: ShapeSet, frame: FaceFrame) -> tuple[ShapeSet, dict, dict]:
+    """``shapes`` plus the other side of each one-sided expression (:mod:`models.mirror`); what was added:
+    ``{new name: {"from": source name, "residual": relative residual against the given shapes}}``; and how
+    symmetric the neutral is about the plane: ``{"median_mm", "p90_mm"}`` of the reflected vertices'
+    distances to the neutral surface (0.2 / 0.7 mm on the ICT sample)."""
     neutral = shapes.neutral
     v0 = shapes.vertices[0]
 
@@ -131,7 +137,9 @@ def with_mirrored_shapes(shapes: ShapeSet, frame: FaceFrame) -> tuple[ShapeSet, 
         names.append(name)
         verts.append((v0 + mirrored[k])[None])
         added[name] = {"from": shapes.names[k + 1], "residual": round(float(residual[k]), 3)}
-    return replace(shapes, names=names, vertices=np.concatenate(verts)), added
+    asymmetry = {"median_mm": round(float(np.median(mmap.distance)), 3),
+                 "p90_mm": round(float(np.percentile(mmap.distance, 90)), 3)}
+    return replace(shapes, names=names, vertices=np.concatenate(verts)), added, asymmetry
 
 
 def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], None]):
@@ -152,11 +160,16 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
         frame = replace(frame, symmetry_normal=n / norm, symmetry_offset=float(off) / norm)
         frame_source = "given by --symmetry-plane"
     mirrored: dict = {}
+    asymmetry = None
     if options.mirror:
-        shapes, mirrored = with_mirrored_shapes(shapes, frame)
+        shapes, mirrored, asymmetry = with_mirrored_shapes(shapes, frame)
         if mirrored:
             report("mirrored shapes added (the other side of one-sided expressions): " +
                    ", ".join(f"{n} from {m['from']}" for n, m in mirrored.items()))
+            if asymmetry["median_mm"] > MIRROR_ASYMMETRY_WARN_MM:
+                report(f"warning: the neutral is {asymmetry['median_mm']:.1f} mm (median) from its own mirror image "
+                       f"about the symmetry plane, so the mirrored shapes are rough; check the plane "
+                       f"(--symmetry-plane) and the mirrored shapes, or train with --no-mirror")
     if options.forehead is not None:
         fore_idx = read_vertex_list(options.forehead, V, "forehead")
         fore_source = f"file {options.forehead}"
@@ -199,7 +212,8 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
     )
     extras = dict(frame=frame, frame_source=frame_source, forehead_idx=fore_idx, forehead_source=fore_source,
                   bones=bones, bones_estimated=estimated, constraints=con, jaw_pivot=pivot,
-                  trusted_source=trusted_source, shapes=shapes, mirrored=mirrored)
+                  trusted_source=trusted_source, shapes=shapes, mirrored=mirrored,
+                  mirror_asymmetry=asymmetry)
     return data, extras
 
 
@@ -253,8 +267,11 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     resolved = {
         "preset": options.preset, "settings": settings.to_dict(), "units": options.units,
         "bone_units": options.bone_units or options.units, "neutral": shapes.names[0],
-        "symmetry_plane": options.symmetry_plane, "mirror": options.mirror,
+        "symmetry_plane": options.symmetry_plane,
     }
+    fingerprint_no_mirror = _fingerprint(inputs, resolved)   # a training without mirrors keeps the fingerprint it had
+    if options.mirror:                                         # before they existed, so it still resumes
+        resolved["mirror"] = True
     fingerprint = _fingerprint(inputs, resolved)
     train_dir = out / TRAINING_DIR
     ckpt_path = train_dir / "checkpoint.pt"
@@ -262,6 +279,10 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     if ckpt_path.is_file():
         state = torch.load(ckpt_path, map_location="cpu", weights_only=True)
         if state.get("fingerprint") != fingerprint:
+            if not options.overwrite and options.mirror and state.get("fingerprint") == fingerprint_no_mirror:
+                raise CaptureError(f"actor '{options.actor}' has an unfinished training started without mirrored shapes "
+                                   f"(--no-mirror, or before they were the default); add --no-mirror to resume it, or "
+                                   f"pass --overwrite to start over with them")
             if not options.overwrite:
                 raise CaptureError(f"actor '{options.actor}' has an unfinished training with other shapes or settings "
                                    f"at {out}; rerun that command to resume it, or pass --overwrite to start over")
@@ -343,7 +364,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
         "shape_names": shapes.names, "neutral": shapes.names[0],
         "n_vertices": int(shapes.vertices.shape[1]), "n_faces": int(len(shapes.faces)),
         "source": {"shapes": str(options.shapes), "files": [str(p) for p in shapes.files],
-                   "mirrored_shapes": extras["mirrored"],
+                   "mirrored_shapes": extras["mirrored"], "mirror_asymmetry": extras["mirror_asymmetry"],
                    "units": options.units, "skull": str(options.skull) if options.skull else None,
                    "jaw": str(options.jaw) if options.jaw else None, "bones_estimated": extras["bones_estimated"]},
         "model": config.to_dict(),
