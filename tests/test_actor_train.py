@@ -94,26 +94,32 @@ def test_existing_actor_needs_overwrite(trained, capsys):
     assert "already exists" in capsys.readouterr().err
 
 
-def test_interrupted_training_resumes_to_the_same_result(tmp_path, monkeypatch, capsys):
-    shapes, skull, jaw = write_tiny_actor_inputs(tmp_path)
-    args = ["--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw), "--iterations", "40", *FAST]
-    assert main(["actor", "train", str(tmp_path / "whole"), *args]) == 0
-
+def _interrupt_at(monkeypatch, iteration: int):
+    """Make training stop as Ctrl-C would at ``iteration``; returns the function that undoes it."""
     from models import train as train_mod
 
     original = train_mod.ActorTrainer.step
 
     def interrupting_step(self):
-        if self.iteration == 25:
+        if self.iteration == iteration:
             raise KeyboardInterrupt
         return original(self)
 
     monkeypatch.setattr(train_mod.ActorTrainer, "step", interrupting_step)
+    return lambda: monkeypatch.setattr(train_mod.ActorTrainer, "step", original)
+
+
+def test_interrupted_training_resumes_to_the_same_result(tmp_path, monkeypatch, capsys):
+    shapes, skull, jaw = write_tiny_actor_inputs(tmp_path)
+    args = ["--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw), "--iterations", "40", *FAST]
+    assert main(["actor", "train", str(tmp_path / "whole"), *args]) == 0
+
+    restore = _interrupt_at(monkeypatch, 25)
     assert main(["actor", "train", str(tmp_path / "resumed"), *args]) == 130
     assert "interrupted at iteration 25" in capsys.readouterr().err
     assert (tmp_path / "resumed" / "training" / "checkpoint.pt").is_file()
     assert main(["actor", "show", str(tmp_path / "resumed")]) == 2  # unfinished: not an actor yet
-    monkeypatch.setattr(train_mod.ActorTrainer, "step", original)
+    restore()
     assert main(["actor", "train", str(tmp_path / "resumed"), *args]) == 0
     assert "resuming training" in capsys.readouterr().err
 
@@ -240,19 +246,10 @@ def test_unfinished_training_without_mirrors_says_how_to_resume(tmp_path, monkey
     fingerprint) is not resumed with other shapes: the default run names ``--no-mirror``, which resumes it."""
     shapes, skull, jaw, _, _ = _one_sided_inputs(tmp_path)
     args = ["--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw), "--iterations", "6", *FAST]
-    from models import train as train_mod
-
-    original = train_mod.ActorTrainer.step
-
-    def interrupting_step(self):
-        if self.iteration == 3:
-            raise KeyboardInterrupt
-        return original(self)
-
-    monkeypatch.setattr(train_mod.ActorTrainer, "step", interrupting_step)
+    restore = _interrupt_at(monkeypatch, 3)
     actor = tmp_path / "a"
     assert main(["actor", "train", str(actor), *args, "--no-mirror"]) == 130
-    monkeypatch.setattr(train_mod.ActorTrainer, "step", original)
+    restore()
     capsys.readouterr()
     assert main(["actor", "train", str(actor), *args]) == 2
     err = capsys.readouterr().err.strip()
