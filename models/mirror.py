@@ -17,7 +17,9 @@ its linear part (``(S - N)(m)``: the displacement interpolated barycentrically o
 Only shapes whose mirror the training set does not already hold are added: a shape is *one-sided* when
 the part of its mirrored displacement that the other shapes' displacements cannot express by least
 squares is more than ``threshold`` of its norm (on ICT FaceKit's 19 training shapes: the L/R pairs and
-symmetric shapes 0.01-0.14, one-sided shapes 0.37-0.60).
+symmetric shapes 0.01-0.14, one-sided shapes 0.37-0.60). A shape whose other side was scanned under the
+other side's name (:func:`other_side`) never gets a mirror: a real face's two sides differ, and the scan
+of the other side is the better shape.
 
 Pure numpy: the closest points come from the caller (:func:`mirror_points` takes a closest-point function,
 e.g. trimesh's), so this module stays free of mesh libraries.
@@ -111,20 +113,22 @@ def one_sided(displacements: np.ndarray, mirrored: np.ndarray, threshold: float 
     return np.linalg.norm(B - A @ coef, axis=0) / np.where(norm > 0, norm, 1.0)
 
 
-def mirrored_name(name: str, taken: set[str]) -> str:
-    """The other side's name of ``name`` (``mouthStretch_L`` -> ``mouthStretch_R``, ``eyeLeft`` -> ``eyeRight``),
-    or ``name + "_mirrored"`` when it has no side or that name is ``taken``; made unique against ``taken``."""
-    out = None
+def other_side(name: str) -> str | None:
+    """The other side's name of ``name`` (``mouthStretch_L`` -> ``mouthStretch_R``, ``eyeLeft`` -> ``eyeRight``,
+    ``lip_l_corner`` -> ``lip_r_corner``), or None when the name has no side."""
     for a, b in _SIDE_SWAPS:
         for x, y in ((a, b), (b, a)):
             if name.endswith(x):
-                out = name[: -len(x)] + y
-                break
+                return name[: -len(x)] + y
             if re.search(re.escape(x) + r"(?=[_.\d]|$)", name):
-                out = re.sub(re.escape(x) + r"(?=[_.\d]|$)", y, name, count=1)
-                break
-        if out is not None:
-            break
+                return re.sub(re.escape(x) + r"(?=[_.\d]|$)", y, name, count=1)
+    return None
+
+
+def mirrored_name(name: str, taken: set[str]) -> str:
+    """:func:`other_side` of ``name``, or ``name + "_mirrored"`` when it has no side or that name is ``taken``;
+    made unique against ``taken``."""
+    out = other_side(name)
     if out is None or out in taken:
         out = f"{name}_mirrored"
     base, i = out, 2

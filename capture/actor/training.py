@@ -35,7 +35,8 @@ from capture.io.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
 from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
 from models.bone_estimate import estimate_bone_surface
 from models.face_frame import FaceFrame, estimate_face_frame, estimate_jaw_pivot, forehead_region
-from models.mirror import ONE_SIDED_THRESHOLD, mirror_displacements, mirror_points, mirrored_name, one_sided
+from models.mirror import (ONE_SIDED_THRESHOLD, mirror_displacements, mirror_points, mirrored_name, one_sided,
+                           other_side)
 from models.precision import HIDDEN_MATMUL
 from models.rotation import rot6d_to_matrix
 from models.train import PRESETS, ActorTrainer, Evaluation, TrainingData, TrainSettings, model_config_for
@@ -133,6 +134,8 @@ def with_mirrored_shapes(shapes: ShapeSet, frame: FaceFrame) -> tuple[ShapeSet, 
     residual = one_sided(disp, mirrored)
     names, verts, added = list(shapes.names), [shapes.vertices], {}
     for k in np.flatnonzero(residual > ONE_SIDED_THRESHOLD):
+        if other_side(shapes.names[k + 1]) in shapes.names:     # both sides scanned: the scans win
+            continue
         name = mirrored_name(shapes.names[k + 1], set(names))
         names.append(name)
         verts.append((v0 + mirrored[k])[None])
