@@ -30,6 +30,7 @@ on ``--seed 100`` (different sequences, expressions and noise). JSON to ``--out`
 
 Usage:
     python benchmarks/bench_outofspan.py [--sequences 4] [--frames 90] [--configs 1000:0.5,300:0.5] [--quick]
+    python benchmarks/bench_outofspan.py --seeds 0,1,2,3,4,5 --configs 1000:0.5 --no-bound [--compare-actor A]
 """
 
 from __future__ import annotations
@@ -137,6 +138,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--sequences", type=int, default=4)
     ap.add_argument("--frames", type=int, default=90)
     ap.add_argument("--seed", type=int, default=0, help="0: reporting; the default preset was tuned on 100")
+    ap.add_argument("--seeds", default="", help="several seeds, comma-separated (e.g. 0,1,2,3,4,5): each as "
+                                                "--seed, then the means over all their sequences")
     ap.add_argument("--configs", default="1000:0.5,1000:1.5,300:0.5,300:1.5", help="landmarks:noise_px, ...")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--previous", action="store_true", help="also the default preset as it was before issue 12")
@@ -151,6 +154,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results"))
     ap.add_argument("--quick", action="store_true", help="check that it runs: 1 sequence of 8 frames, 100 landmarks")
     args = ap.parse_args(argv)
+    if args.seeds:
+        return over_seeds(argv, [int(x) for x in args.seeds.split(",")], Path(args.out))
     import torch
 
     from capture.actor.package import load_actor
@@ -223,6 +228,38 @@ def main(argv: list[str] | None = None) -> dict:
     p = out / ("outofspan_quick.json" if args.quick else f"outofspan_seed{args.seed}.json")
     write_text(p, json.dumps(res, indent=1))
     print(f"\nnumbers: {p}")
+    return res
+
+
+def over_seeds(argv: list[str] | None, seeds: list[int], out: Path) -> dict:
+    """Run every seed as ``--seed S`` (one JSON each), then print and write the means over all sequences."""
+    from capture.io.atomic import write_text
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    i = next(k for k, a in enumerate(argv) if a == "--seeds" or a.startswith("--seeds="))
+    del argv[i: i + (1 if "=" in argv[i] else 2)]
+    runs = [main(argv + ["--seed", str(seed)]) for seed in seeds]
+    summary = []
+    print(f"\nover seeds {', '.join(map(str, seeds))}:")
+    for c, cfg in enumerate(runs[0]["configs"]):
+        rows = {}
+        for run in runs:
+            for seq in run["configs"][c]["sequences"]:
+                for name, m in seq["methods"].items():
+                    rows.setdefault(name, {}).setdefault(run["seed"], []).append(m["mean_mm"])
+        print(f"[{cfg['landmarks']} landmarks, {cfg['noise_px']} px]")
+        for name, per_seed in rows.items():
+            allv = np.concatenate(list(per_seed.values()))
+            summary.append({"landmarks": cfg["landmarks"], "noise_px": cfg["noise_px"], "method": name,
+                            "mean_mm": float(allv.mean()), "median_mm": float(np.median(allv)),
+                            "sequences": int(len(allv)),
+                            "per_seed_mean_mm": {str(k): float(np.mean(v)) for k, v in per_seed.items()}})
+            print(f"  {name:42s} mean {allv.mean():.3f} mm, median {np.median(allv):.3f} over {len(allv)} "
+                  f"sequences; per seed " + " / ".join(f"{np.mean(v):.3f}" for v in per_seed.values()))
+    res = {"seeds": seeds, "summary": summary, "per_seed": runs}
+    p = out / f"outofspan_seeds{seeds[0]}-{seeds[-1]}.json"
+    write_text(p, json.dumps(res, indent=1))
+    print(f"numbers: {p}")
     return res
 
 

@@ -240,3 +240,18 @@ def test_bench_actor_quick(tmp_path):
     assert [(r["hidden_matmul"], r["meta"]["training"]["hidden_matmul"]) for r in res["runs"]] == [
         ("fp32", "fp32"), ("bf16", "bf16")]
     assert res["runs"][0]["meta"]["training"]["settings"]["hidden_matmul"] == "fp32"
+
+
+@needs_ict
+def test_bench_outofspan_over_seeds(tmp_path):
+    """``--seeds``: each seed runs as ``--seed``; the summary's means are those of all their sequences."""
+    from benchmarks.bench_outofspan import main
+
+    res = main(["--quick", "--no-bound", "--seeds", "0,1", "--out", str(tmp_path)])
+    assert [r["seed"] for r in res["per_seed"]] == [0, 1]
+    row = next(r for r in res["summary"] if r["method"] == "AIM default")
+    per_seq = [s["methods"]["AIM default"]["mean_mm"] for r in res["per_seed"] for s in r["configs"][0]["sequences"]]
+    assert row["sequences"] == len(per_seq) == 2
+    assert row["mean_mm"] == pytest.approx(np.mean(per_seq)) and row["median_mm"] == pytest.approx(np.median(per_seq))
+    assert per_seq[0] != per_seq[1]          # two different performances, not one run twice
+    assert (tmp_path / "outofspan_seeds0-1.json").is_file()
