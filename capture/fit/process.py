@@ -158,13 +158,19 @@ class FitWorker:
     :attr:`timings` holds the fit's timings (``query_s``, ``pnp_s``, ``solve_s``, ``busy_s`` ...).
     """
 
+    @staticmethod
+    def forks(in_process: bool | None = None) -> bool:
+        """Whether a worker made with ``in_process`` runs the fit in a forked process (else in a thread, which
+        starts in the constructor: load C extensions such as pxr before it, see capture.run.stream)."""
+        if in_process is None:     # fork is safe on Linux; macOS' system libraries are not fork-safe
+            return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+        return bool(in_process)
+
     def __init__(self, actor, template_points, camera, how, causal: bool = False, threads: int = 1,
                  in_process: bool | None = None):
         from capture.fit.init import PnPSettings
 
-        if in_process is None:     # fork is safe on Linux; macOS' system libraries are not fork-safe
-            in_process = sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
-        self.in_process = bool(in_process)
+        self.in_process = self.forks(in_process)
         self.actor = actor
         ctx = multiprocessing.get_context("fork") if self.in_process else multiprocessing
         self._rows_child, self._rows = ctx.Pipe(duplex=False)    # (receive end, send end)

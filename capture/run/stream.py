@@ -377,11 +377,20 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     ctx = replace(export_context, options=replace(export_context.options, overwrite=True))
     want_images = any(EXPORTERS[f].needs_image for f in formats)
     series = SeriesCollector(inputs.actor.config.n_expressions)
-    # the fit's process is forked before any thread of this run starts
-    worker = FitWorker(inputs.actor, inputs.landmark_points, inputs.camera.camera, how, threads=cfg.threads,
-                       in_process=None if cfg.side_processes else False)
+    # the fit's process is forked before any thread of this run starts; a fit in a thread (no fork, e.g. a Ray
+    # worker) starts importing torch at once, so the writers (pxr) are opened before it: pxr's loading in one
+    # thread while another imported kornia deadlocked a batch take (the loader lock against the GIL)
+    in_process = None if cfg.side_processes else False
+    early = None if FitWorker.forks(in_process) else open_exporters(formats, out, ctx)
     try:
-        with open_exporters(formats, out, ctx) as writers, StageProgress("fit", n_frames, progress) as bar:
+        worker = FitWorker(inputs.actor, inputs.landmark_points, inputs.camera.camera, how, threads=cfg.threads,
+                           in_process=in_process)
+    except BaseException:
+        if early is not None:
+            early.abort()
+        raise
+    try:
+        with (early or open_exporters(formats, out, ctx)) as writers, StageProgress("fit", n_frames, progress) as bar:
             reader = VideoReader(cfg.video) if want_images else None
             pipe_line.start("decode", decode, clocks["decode"])
             pipe_line.start("detect", detect, clocks["detect"])
