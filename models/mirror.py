@@ -21,8 +21,8 @@ symmetric shapes 0.01-0.14, one-sided shapes 0.37-0.60). A shape whose other sid
 other side's name (:func:`other_side`) never gets a mirror: a real face's two sides differ, and the scan
 of the other side is the better shape.
 
-Pure numpy: the closest points come from the caller (:func:`mirror_points` takes a closest-point function,
-e.g. trimesh's), so this module stays free of mesh libraries.
+The closest points come from the caller (:func:`mirror_points` takes a closest-point function, e.g.
+trimesh's); their barycentric coordinates are trimesh's.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import trimesh
 
 #: Default relative residual above which a mirrored shape is new (see the module docstring).
 ONE_SIDED_THRESHOLD = 0.3
@@ -75,20 +76,8 @@ def mirror_points(vertices: np.ndarray, faces: np.ndarray, normal, offset: float
     reflected = v @ M.T + o
     pts, tri = closest(reflected)
     pts, tri = np.asarray(pts, np.float64), np.asarray(tri, np.int64)
-    return MirrorMap(tri, barycentric(pts, v[f[tri]]), np.linalg.norm(pts - reflected, axis=1))
-
-
-def barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """``(P, 3)`` barycentric coordinates of ``points (P, 3)`` in ``triangles (P, 3, 3)`` (projected on their planes)."""
-    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
-    v0, v1, v2 = b - a, c - a, points - a
-    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
-    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
-    den = d00 * d11 - d01 * d01
-    den = np.where(np.abs(den) < 1e-300, 1.0, den)
-    wb = (d11 * d20 - d01 * d21) / den
-    wc = (d00 * d21 - d01 * d20) / den
-    return np.stack([1.0 - wb - wc, wb, wc], 1)
+    bary = trimesh.triangles.points_to_barycentric(v[f[tri]], pts)
+    return MirrorMap(tri, bary, np.linalg.norm(pts - reflected, axis=1))
 
 
 def mirror_displacements(displacements: np.ndarray, faces: np.ndarray, mirror: MirrorMap, normal) -> np.ndarray:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from models.mirror import (ONE_SIDED_THRESHOLD, barycentric, mirror_displacements, mirror_points, mirrored_name,
+from models.mirror import (ONE_SIDED_THRESHOLD, mirror_displacements, mirror_points, mirrored_name,
                            one_sided, reflection)
 
 
@@ -54,14 +54,6 @@ def test_reflection_is_an_involution_that_fixes_its_plane():
     np.testing.assert_allclose(P(x) @ u - d / np.linalg.norm(n), -dist, atol=1e-12)
     with pytest.raises(ValueError, match="non-zero normal"):
         reflection([0, 0, 0], 1.0)
-
-
-def test_barycentric_reproduces_points_in_their_triangles():
-    rng = np.random.default_rng(1)
-    tri = rng.normal(size=(40, 3, 3))
-    w = rng.dirichlet(np.ones(3), size=40)
-    p = np.einsum("pc,pcx->px", w, tri)
-    np.testing.assert_allclose(barycentric(p, tri), w, atol=1e-9)
 
 
 def test_mirrored_field_on_a_symmetric_mesh_equals_the_reference():
