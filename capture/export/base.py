@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -147,9 +148,9 @@ class ExportContext:
             raise ValueError(f"image_size must be (width, height) > 0, got {self.image_size}")
         self.image_size = (w, h)
 
-    @property
+    @cached_property
     def min_vertex_count(self) -> int:
-        """The smallest vertex count the faces allow (one more than the largest index)."""
+        """The smallest vertex count the faces allow (one more than the largest index; checked per frame)."""
         return int(self.faces.max()) + 1
 
 

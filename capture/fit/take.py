@@ -56,7 +56,8 @@ from models.fit import (FIT3D_PRESETS, FIT_PRESETS, ActorAtPoints, FitSettings, 
 __all__ = ["FrameFit", "fit_take", "fit_meshes", "resolve_settings", "resolved_settings_dict", "window_plan",
            "farthest_point_sample"]
 
-CACHE_VERSION = 3  # 2: SequenceFit has a jaw and coefficient base; 3: and a coefficient field
+CACHE_VERSION = 4  # 2: SequenceFit has a jaw and coefficient base; 3: and a coefficient field; 4: LM with the
+#                   robust loss's curvature (models.fit_lm.REWEIGHTED_STEPS): other windows than 3's
 
 
 @dataclass(frozen=True)
