@@ -74,6 +74,39 @@ def test_warp_antialias_keeps_geometry():
     np.testing.assert_allclose(centroid, frame_to_input([700.0, 400.0], crop, SIZE), atol=0.05)
 
 
+@pytest.mark.parametrize("crop", [Crop(640.0, 360.0, 300.0, 0.0), Crop(600.0, 300.0, 420.0, 25.0),
+                                  Crop(60.0, 700.0, 330.0, -40.0), Crop(640.0, 360.0, 1500.0, 0.0)],
+                         ids=["inside", "rotated", "over-the-corner", "larger-than-the-frame"])
+def test_warp_reduces_only_what_the_crop_covers(crop):
+    """The anti-aliased warp reduces only the region the crop covers, at the right place: on a linear ramp
+    (which area averaging and bilinear sampling both reproduce exactly, whatever the blocks' phase; 16-bit,
+    20-30 levels per px) every input pixel whose neighbourhood lies in the frame has the ramp's value at its
+    frame position (input_to_frame) within 0.05 input px (OpenCV's area reduction by a non-integer factor
+    and its 1/32 px sampling; at the 4.7x reduction of a 300 px crop that is 8 levels, where a shift by
+    one frame pixel is 20-30); pixels off the frame are black."""
+    from capture.detector.crop import input_to_frame
+
+    h, w = 720, 1280
+    ys, xs = np.mgrid[0:h, 0:w]
+    ramp = lambda x, y: 20.0 * x + 30.0 * y + 100.0
+    frame = np.repeat(np.round(ramp(xs, ys)).astype(np.uint16)[:, :, None], 3, axis=2)
+    size = (64, 64)
+    img = warp_crop(frame, crop, size)[:, :, 0].astype(np.float64)
+    qy, qx = np.mgrid[0:64, 0:64]
+    p = input_to_frame(np.stack([qx.ravel(), qy.ravel()], 1).astype(np.float64), crop, size)
+    f = int(crop.size // 64)
+    margin = 2 * f + 1                     # a reduced pixel and the bilinear neighbour, in frame px
+    inside = ((p[:, 0] > margin) & (p[:, 0] < w - 1 - margin) & (p[:, 1] > margin) & (p[:, 1] < h - 1 - margin))
+    outside = (p[:, 0] < -margin) | (p[:, 0] > w - 1 + margin) | (p[:, 1] < -margin) | (p[:, 1] > h - 1 + margin)
+    assert inside.sum() > 500
+    err = np.abs(img.ravel()[inside] - ramp(p[inside, 0], p[inside, 1]))
+    tol = np.hypot(20.0, 30.0) * 0.05 * crop.size / size[0]        # 0.05 input px, in levels
+    assert err.max() <= tol, (err.max(), tol)
+    assert not img.ravel()[outside].any()
+    off = warp_crop(frame, Crop(-900.0, -900.0, 300.0, 0.0), size)
+    assert off.shape == (64, 64, 3) and not off.any()
+
+
 def test_crop_from_box_and_landmarks():
     c = crop_from_box(10.0, 20.0, 110.0, 100.0, 0.25, SIZE)
     assert (c.cx, c.cy, c.size) == (60.0, 60.0, 150.0)

@@ -177,22 +177,34 @@ def warp_crop(frame: np.ndarray, crop: Crop, input_size: tuple[int, int]) -> np.
 
     When the crop shrinks the frame by more than 2x, the frame is first reduced with area averaging
     by an integer factor (anti-aliasing); the geometry stays exact because the reduction's own
-    pixel mapping (``p' = (p + 0.5) * s - 0.5``) is folded into the affine.
+    pixel mapping (``p' = (p - o + 0.5) * s - 0.5``) is folded into the affine. Only the part of the
+    frame that the crop covers (``o`` its corner, with a margin of two reduced pixels) is reduced:
+    for a face of 300 px in a 1280x720 frame that is a tenth of the work of reducing the whole frame.
     """
     import cv2
 
     m = crop_matrix(crop, input_size)
     k = input_size[0] / crop.size
     src = frame
+    out_w, out_h = int(input_size[0]), int(input_size[1])
     if k < 0.5:
         f = int(math.floor(1.0 / k))
         h, w = frame.shape[:2]
-        dw, dh = max(1, int(round(w / f))), max(1, int(round(h / f)))
-        src = cv2.resize(frame, (dw, dh), interpolation=cv2.INTER_AREA)
-        sx, sy = dw / w, dh / h
-        # p = (p' + 0.5) / s - 0.5  =>  q = A p + t = A diag(1/s) p' + A (0.5/s - 0.5) + t
+        corners = apply_affine(inverse_crop_matrix(crop, input_size),
+                               [[-0.5, -0.5], [out_w - 0.5, -0.5], [-0.5, out_h - 0.5], [out_w - 0.5, out_h - 0.5]])
+        pad = 2 * f + 1
+        x0, y0 = (max(0, int(math.floor(v)) - pad) for v in corners.min(0))
+        x1, y1 = min(w, int(math.ceil(corners[:, 0].max())) + pad), min(h, int(math.ceil(corners[:, 1].max())) + pad)
+        if x1 <= x0 or y1 <= y0:        # the crop is off the frame: all black
+            return np.zeros((out_h, out_w) + frame.shape[2:], frame.dtype)
+        roi = frame[y0:y1, x0:x1]
+        rw, rh = x1 - x0, y1 - y0
+        dw, dh = max(1, int(round(rw / f))), max(1, int(round(rh / f)))
+        src = cv2.resize(roi, (dw, dh), interpolation=cv2.INTER_AREA)
+        sx, sy = dw / rw, dh / rh
+        # p = (p' + 0.5) / s - 0.5 + o  =>  q = A p + t = A diag(1/s) p' + A (0.5/s - 0.5 + o) + t
         a = m[:, :2]
         inv_s = np.array([1.0 / sx, 1.0 / sy])
-        m = np.hstack([a * inv_s[None, :], (m[:, 2] + a @ (0.5 * inv_s - 0.5))[:, None]])
-    return cv2.warpAffine(src, m, (int(input_size[0]), int(input_size[1])), flags=cv2.INTER_LINEAR,
+        m = np.hstack([a * inv_s[None, :], (m[:, 2] + a @ (0.5 * inv_s - 0.5 + np.array([x0, y0])))[:, None]])
+    return cv2.warpAffine(src, m, (out_w, out_h), flags=cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
