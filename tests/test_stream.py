@@ -277,3 +277,21 @@ def test_the_command_line_loads_without_heavy_imports():
                        env={**os.environ, "PYTHONPATH": str(root)})
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == ""
+
+
+@pytest.mark.parametrize("lanes", [1, 2, 3, 4, 8])
+def test_detection_groups_ramp_up_and_down(lanes):
+    """Every segment once, in order, at most ``lanes`` side by side; the fit gets two segments first (its
+    first window and the head poses after it) and one last (little left to fit when detection ends); the
+    middle groups are full."""
+    from capture.run.stream import ramped_groups
+
+    for n in range(0, 41):
+        groups = ramped_groups(list(range(100, 100 + n)), lanes)
+        sizes = [len(g) for g in groups]
+        assert sum(groups, []) == list(range(100, 100 + n))
+        assert all(1 <= k <= lanes for k in sizes)
+        if n >= 3:
+            assert sizes[0] == min(2, lanes) and sizes[-1] == 1
+        if n >= 4 * lanes:
+            assert lanes in sizes and sizes.count(lanes) >= n // lanes - 3

@@ -191,8 +191,41 @@ def plan_detection(video: Path, detector, out_dir: Path, frames, query) -> Detec
     missing = [s for s in starts if s not in cached]
     seg_len = {s: min(seg, info.frame_count - s) for s in starts}
     lanes = max(1, min(detector.batch_size, DECODE_BUDGET_BYTES // max(1, info.width * info.height * 3 * seg)))
-    groups = [missing[g:g + lanes] for g in range(0, len(missing), lanes)]
-    return DetectPlan(starts, seg_len, cached, groups, wanted, cdir, info)
+    return DetectPlan(starts, seg_len, cached, ramped_groups(missing, lanes), wanted, cdir, info)
+
+
+def ramped_groups(segments: list[int], lanes: int, first: int = 2) -> list[list[int]]:
+    """``segments`` in order, cut into groups that run side by side: ``first`` (at most ``lanes``), then
+    twice as many up to ``lanes``, ``lanes`` in the middle, and halving down to 1 at the end.
+
+    A group's landmarks reach the fit when its last frame is detected, so the first group sets when the
+    fit can start and the last one how much it has left when detection ends. The first group holds two
+    segments: the first window (30 frames) also waits for the head poses of the frames after it that
+    its smoothing reads (8 more). With groups of 4 segments of 32 frames the fit of a 300-frame take
+    started 4.5 s into the run and ended 1.3 s after the detector; the batch size barely changes the
+    detector's speed (groups of 1, 2 and 4 segments: 4.5, 3.9 and 4.3 s for that take's detection).
+    """
+    lanes = max(1, int(lanes))
+    head, tail = [], []
+    n = len(segments)
+    up, down = max(1, min(int(first), lanes)), 1        # the next sizes of the ramps, grown in turn
+    while True:
+        grew = False
+        if up < lanes and sum(head) + sum(tail) + up <= n:
+            head.append(up)
+            up, grew = up * 2, True
+        if down < lanes and sum(head) + sum(tail) + down <= n:
+            tail.insert(0, down)
+            down, grew = down * 2, True
+        if not grew:
+            break
+    middle = n - sum(head) - sum(tail)
+    sizes = head + [lanes] * (middle // lanes) + ([middle % lanes] if middle % lanes else []) + tail
+    out, i = [], 0
+    for k in sizes:
+        out.append(segments[i:i + k])
+        i += k
+    return out
 
 
 def _frame_weights(points: np.ndarray, confidence: np.ndarray | None) -> np.ndarray:
