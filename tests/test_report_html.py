@@ -6,6 +6,7 @@ import base64
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -142,3 +143,27 @@ def test_figures_drawn_in_their_own_process_are_the_same_bytes():
         fp._proc.join()
         fp.submit(s)
         assert fp.result() == here                 # the process is gone: drawn here
+
+
+def test_worst_frame_images_keeps_exactly_the_worst_frames():
+    """Offered frame by frame in order (as a take streams by), the collector ends with the images of
+    worst_frames' frames, never holding more than k: ties (the earlier frame is worse), frames without an
+    error (None, NaN) and takes shorter than k included."""
+    from capture.export.report_html import WorstFrameImages, worst_frames
+
+    rng = np.random.default_rng(0)
+    for trial in range(200):
+        T = int(rng.integers(0, 40))
+        err = np.round(rng.random(T) * 5, 1)            # rounded: many ties
+        err[rng.random(T) < 0.15] = np.nan
+        frames = np.arange(T) * 2 + 7
+        k = int(rng.integers(1, 8))
+        c = WorstFrameImages(k)
+        for f, e in zip(frames, err):
+            e = None if (np.isnan(e) and f % 4 == 1) else float(e)
+            if c.wants(int(f), e):
+                c.keep(int(f), e, np.full(2, f))
+            assert len(c.images) <= k
+        ref = worst_frames(SimpleNamespace(error=err, frame=frames), k)
+        assert sorted(c.images) == sorted(ref), (trial, k)
+        assert all(int(v[0]) == f for f, v in c.images.items())

@@ -273,6 +273,37 @@ def test_frames_without_a_face_are_reported_skipped(take, tmp_path):
     assert report["frames"]["requested"] == 12 and report["frames"]["skipped"] == 2
 
 
+def test_the_stream_hands_the_report_its_worst_frames_decoded(take, tmp_path, monkeypatch):
+    """The streamed run keeps the images of the report's worst frames as it goes (report_html.WorstFrameImages),
+    so report.html decodes nothing after the take: the thumbnails get every frame they draw, and each is
+    the video's frame (read here with OpenCV, frame by frame)."""
+    import cv2
+
+    import capture.export.report_html as rh
+
+    root, actor, take_dir = take
+    seen = {}
+    original = rh.thumbnails
+
+    def spy(video, frames, *args, images=None, **kwargs):
+        seen.update(frames=list(frames), images=dict(images or {}))
+        return original(video, frames, *args, images=images, **kwargs)
+
+    monkeypatch.setattr(rh, "thumbnails", spy)
+    out = tmp_path / "out"
+    assert main(run_args(take_dir, actor, out, "--formats", "npz")) == 0
+    assert seen["frames"] and sorted(seen["images"]) == sorted(seen["frames"])
+    cap = cv2.VideoCapture(str(take_dir / "take.mp4"))
+    for i in range(max(seen["frames"]) + 1):
+        ok, img = cap.read()
+        assert ok
+        if i in seen["images"]:
+            np.testing.assert_array_equal(seen["images"][i], img)
+    cap.release()
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64") >= len(seen["frames"])
+
+
 def test_fit3d_on_truth_meshes(take, tmp_path):
     _, actor, take_dir = take
     z = np.load(take_dir / "truth_meshes.npz")

@@ -28,8 +28,10 @@ base64 PNG; the page has inline CSS and no scripts.
 from __future__ import annotations
 
 import base64
+import heapq
 import html
 import io
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -144,6 +146,36 @@ def worst_frames(s: TakeSeries, k: int = WORST_FRAMES) -> list[int]:
     ok = np.flatnonzero(np.isfinite(s.error))
     order = ok[np.argsort(-s.error[ok], kind="stable")][:k]
     return [int(s.frame[j]) for j in order]
+
+
+class WorstFrameImages:
+    """The images of a take's ``k`` worst frames, gathered while the take goes by: frames are offered in
+    order with their error (:meth:`wants`, then :meth:`keep` with the image), and at most ``k`` images are
+    held. At the end :attr:`images` has those of :func:`worst_frames` (the ``k`` worst frames of a take
+    are among the ``k`` worst of every prefix that contains them; ties go to the earlier frame, as there).
+    ``capture run`` fills it from a second reader that follows the fit once detection is done, so the
+    report need not decode the video again after the take (:func:`thumbnails`' ``images``)."""
+
+    def __init__(self, k: int = WORST_FRAMES):
+        self.k = int(k)
+        self._heap: list[tuple[float, int]] = []     # (error, -frame): the least bad kept frame first
+        self.images: dict[int, np.ndarray] = {}
+
+    def wants(self, frame: int, error: float | None) -> bool:
+        """Would the frame be among the ``k`` worst of those offered so far?"""
+        if self.k <= 0 or error is None or not math.isfinite(error):
+            return False
+        return len(self._heap) < self.k or (float(error), -int(frame)) > self._heap[0]
+
+    def keep(self, frame: int, error: float, image: np.ndarray) -> None:
+        """Hold ``image`` for ``frame`` (after :meth:`wants` said yes); lets go of the one it displaces."""
+        key = (float(error), -int(frame))
+        if len(self._heap) < self.k:
+            heapq.heappush(self._heap, key)
+        else:
+            _, gone = heapq.heapreplace(self._heap, key)
+            self.images.pop(-gone, None)
+        self.images[int(frame)] = image
 
 
 # ------------------------------------------------------------------------------------------- figures
@@ -274,38 +306,48 @@ def figures(s: TakeSeries) -> list[tuple[str, str]]:
 
 # ---------------------------------------------------------------------------------------- thumbnails
 def thumbnails(video: Path, frames: list[int], fits: dict[int, Any], detections: dict[int, Any], renderer,
-               height: int = THUMB_HEIGHT) -> list[tuple[int, str]]:
+               height: int = THUMB_HEIGHT, images: dict[int, np.ndarray] | None = None) -> list[tuple[int, str]]:
     """``[(frame, base64 PNG)]``: the frames drawn by ``renderer`` (an overlay ``FrameRenderer``), cropped
-    to the face (the detected landmarks' box, else the fitted landmarks', with a 25 % margin)."""
+    to the face (the detected landmarks' box, else the fitted landmarks', with a 25 % margin).
+
+    ``images``: frames already decoded (e.g. by :class:`WorstFrameImages`); the others are read from
+    ``video``."""
     import cv2
 
     from capture.io.video import VideoReader
 
+    def frames_read():
+        have = images or {}
+        missing = sorted(i for i in frames if int(i) not in have)
+        yield from ((int(i), have[int(i)]) for i in sorted(frames) if int(i) in have)
+        if missing:
+            with VideoReader(video) as reader:
+                yield from reader.frames(missing)
+
     out = {}
-    with VideoReader(video) as reader:
-        for i, img in reader.frames(sorted(frames)):
-            f = fits.get(int(i))
-            if f is None:
-                continue
-            d = detections.get(int(i))
-            drawn = renderer.render(img, f, d, getattr(f, "vertices", None))
-            pts = np.asarray(d.points if d is not None and d.face_found else getattr(f, "landmarks_fit", np.zeros((0, 2))),
-                             np.float64).reshape(-1, 2)
-            pts = pts[np.isfinite(pts).all(1)]
-            h, w = drawn.shape[:2]
-            if len(pts):
-                lo, hi = pts.min(0), pts.max(0)
-                c, half = 0.5 * (lo + hi), 0.5 * (hi - lo).max() * 1.25 + 8
-                x0, y0 = int(max(0, c[0] - half)), int(max(0, c[1] - half))
-                x1, y1 = int(min(w, c[0] + half)), int(min(h, c[1] + half))
-                crop = drawn[y0:y1, x0:x1] if x1 - x0 > 8 and y1 - y0 > 8 else drawn
-            else:
-                crop = drawn
-            scale = height / crop.shape[0]
-            crop = cv2.resize(crop, (max(1, int(round(crop.shape[1] * scale))), height), interpolation=cv2.INTER_AREA)
-            ok, png = cv2.imencode(".png", crop)
-            if ok:
-                out[int(i)] = base64.b64encode(png.tobytes()).decode("ascii")
+    for i, img in frames_read():
+        f = fits.get(int(i))
+        if f is None:
+            continue
+        d = detections.get(int(i))
+        drawn = renderer.render(img, f, d, getattr(f, "vertices", None))
+        pts = np.asarray(d.points if d is not None and d.face_found else getattr(f, "landmarks_fit", np.zeros((0, 2))),
+                         np.float64).reshape(-1, 2)
+        pts = pts[np.isfinite(pts).all(1)]
+        h, w = drawn.shape[:2]
+        if len(pts):
+            lo, hi = pts.min(0), pts.max(0)
+            c, half = 0.5 * (lo + hi), 0.5 * (hi - lo).max() * 1.25 + 8
+            x0, y0 = int(max(0, c[0] - half)), int(max(0, c[1] - half))
+            x1, y1 = int(min(w, c[0] + half)), int(min(h, c[1] + half))
+            crop = drawn[y0:y1, x0:x1] if x1 - x0 > 8 and y1 - y0 > 8 else drawn
+        else:
+            crop = drawn
+        scale = height / crop.shape[0]
+        crop = cv2.resize(crop, (max(1, int(round(crop.shape[1] * scale))), height), interpolation=cv2.INTER_AREA)
+        ok, png = cv2.imencode(".png", crop)
+        if ok:
+            out[int(i)] = base64.b64encode(png.tobytes()).decode("ascii")
     return [(i, out[i]) for i in frames if i in out]
 
 

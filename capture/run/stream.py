@@ -242,6 +242,7 @@ class StreamResult:
     fit_dir: Path
     log: list
     series: Any = None         # capture.export.report_html.SeriesCollector of the exported fits
+    thumbnail_images: dict = field(default_factory=dict)   # frame -> image of the worst frames (report.html)
 
 
 def stream_take(inputs, out: Path, export_context, formats, export_key: Callable[[Any], dict],
@@ -255,7 +256,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     from capture.detector.pipeline import _segment_path, _write_segment, stack_frames
     from capture.detector.runtime import Lane, TrackState
     from capture.export import EXPORTERS, open_exporters
-    from capture.export.report_html import SeriesCollector
+    from capture.export.overlay_draw import confident_rms
+    from capture.export.report_html import SeriesCollector, WorstFrameImages
     from capture.fit.process import FitStopped, FitWorker
     from capture.io.video import VideoReader
     from capture.run.stages import DONE_JSON, EXPORT_JSON, FIT_CHUNK, LANDMARKS, fit_dir_for, fit_key, windowed_fit
@@ -338,6 +340,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
             raise CaptureError(f"video {Path(cfg.video).name} ends before frame {lost} (its header says "
                                f"{plan.info.frame_count} frames); request frames below {lost}")
         landmarks.put(_END)
+        detected_all.set()
 
     def rows():
         """The fit's rows, with the plausibility check of capture.run.checks frame by frame."""
@@ -401,6 +404,36 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                                **{k: v for k, v in timings.items() if isinstance(v, (int, float))}}
         fits.put(_END)
 
+    # the report's worst frames, decoded while the fit finishes: once detection is done a second reader
+    # follows the exported frames (their errors) and keeps the images of the worst so far (WorstFrameImages),
+    # on the core that the decoder and the detector left; the report then decodes nothing after the take
+    detected_all = threading.Event()
+    worst = WorstFrameImages()
+    errors: dict[int, float | None] = {}
+    errors_cv = threading.Condition()
+    exported_all = [False]
+
+    def worst_images():
+        background_thread()
+        while not detected_all.wait(0.1):
+            if pipe_line.stop.is_set():
+                return
+        try:
+            with VideoReader(cfg.video) as thumbs_reader:
+                for i in plan.wanted:
+                    with errors_cv:
+                        while i not in errors and not exported_all[0] and not pipe_line.stop.is_set():
+                            errors_cv.wait(0.1)
+                        if pipe_line.stop.is_set():
+                            return
+                        e = errors.get(i)
+                    if worst.wants(i, e):
+                        got = next(iter(thumbs_reader.frames([i])), None)
+                        if got is not None:
+                            worst.keep(i, e, got[1])
+        except Exception:    # the report reads whatever is missing from the video itself
+            return
+
     # export, in this thread. The writers are opened (pxr, av imported) before the other stages start:
     # a C extension loading in one thread while another runs torch or FFmpeg can deadlock.
     state_path = out / EXPORT_JSON
@@ -429,6 +462,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
             pipe_line.start("detect", detect, clocks["detect"])
             pipe_line.start("feed", feed, clocks["feed"])
             pipe_line.start("fit", fit, clocks["fit"])
+            thumbs = threading.Thread(target=worst_images, name="capture-worst-frames", daemon=True)
+            thumbs.start()
             source = iter(reader.frames(plan.wanted)) if reader is not None else None
             try:
                 by_index = {}
@@ -439,11 +474,18 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                         if int(index) == int(ff.frame):
                             image = img
                             break
-                    writers.write(ff, image, detection_factory(_lookup(results, by_index, int(ff.frame))))
+                    detection = detection_factory(_lookup(results, by_index, int(ff.frame)))
+                    writers.write(ff, image, detection)
                     series.add(ff)         # the report's series, while the fit works on (not read back)
+                    with errors_cv:
+                        errors[int(ff.frame)] = confident_rms(ff, detection)
+                        errors_cv.notify_all()
                     clocks["export"].busy += time.perf_counter() - t0
                     bar.advance(1)
                 pipe_line.check()
+                with errors_cv:
+                    exported_all[0] = True
+                    errors_cv.notify_all()
                 t_close = time.perf_counter()     # the writers finish (USD's last block, NPZ) as the block ends
             finally:
                 if reader is not None:
@@ -458,6 +500,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         worker.close()
         raise
     clocks["export"].busy += time.perf_counter() - t_close
+    thumbs.join()
     pipe_line.close()
     worker.close()
     pipe_line.check()
@@ -499,7 +542,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         {"stage": "export", "status": "done", "seconds": c["export"].busy, "finished_after_s": wall,
          "files": len(rel), "streamed": True},
     ]
-    return StreamResult(track, final, log, series)
+    return StreamResult(track, final, log, series, worst.images)
 
 
 def _lookup(results: list, cache: dict, frame: int):

@@ -171,6 +171,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
                                   bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
 
     collector = None           # the report's series, when the stream collected it
+    worst_images = None        # and the images of its worst frames
     with sigterm_as_interrupt():
         try:
             streamed = None if cfg.segments else _stream_unless_fitted(inputs, out, log)
@@ -181,7 +182,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
                 res = stream_take(inputs, out, replace(ctx, frame_count=streamed), cfg.formats, export_key,
                                   lambda r: Detection(r.points, r.confidence, bool(r.face_found)), cfg.progress)
                 log[:] = res.log
-                track, fit_dir, collector = res.track, res.fit_dir, res.series
+                track, fit_dir, collector, worst_images = res.track, res.fit_dir, res.series, res.thumbnail_images
                 check_reasons = check_detections(track, det.name)
                 frames = fit_frames(fit_dir)
                 dets = detections_of(track)
@@ -243,7 +244,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
     finish_report(report, rows, "reprojection_rms_px", out)
     html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
                 video=Path(cfg.video), camera=cam, image_size=(info.width, info.height), figure_process=figure_process,
-                collector=collector)
+                collector=collector, images=worst_images)
     check_complete(requested, frames)
     if implausible:
         raise CaptureError(implausible)
@@ -301,12 +302,14 @@ def rig_and_features(actor, formats) -> dict:
 
 def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict], error_key: str, unit: str,
                 fps: float, detections: dict | None = None, video: Path | None = None, camera=None,
-                image_size: tuple[int, int] | None = None, figure_process=None, collector=None) -> Path:
+                image_size: tuple[int, int] | None = None, figure_process=None, collector=None,
+                images: dict | None = None) -> Path:
     """``OUT/report.html`` (:mod:`capture.export.report_html`): the take's plots and its worst frames.
 
     ``figure_process`` (:class:`capture.export.report_figures.FigureProcess`) draws the plots while the
     thumbnails are drawn here (None: both here); ``collector`` (:class:`capture.export.report_html.
-    SeriesCollector`) has seen the take's fits already (None: they are read from ``fit_dir``)."""
+    SeriesCollector`) has seen the take's fits already (None: they are read from ``fit_dir``); ``images``
+    holds the worst frames' images that the stream kept (the others are read from ``video``)."""
     from capture.export.features import face_features
     from capture.export.overlay_draw import FrameRenderer, Topology
     from capture.export.report_html import take_series, thumbnails, worst_frames, write_report_html
@@ -325,7 +328,8 @@ def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict],
         feats = face_features(faces, actor.template_vertices, rig.expressions, rig.names)
         renderer = FrameRenderer(Topology.of(faces, feats), camera, image_size, fps,
                                  ("mesh", "contours", "landmarks"))   # the caption says frame and error
-        thumbs = thumbnails(video, worst, fits_at(fit_dir, worst, THUMBNAIL_FIELDS), detections or {}, renderer)
+        thumbs = thumbnails(video, worst, fits_at(fit_dir, worst, THUMBNAIL_FIELDS), detections or {}, renderer,
+                            images=images)
     figs = figure_process.result() if figure_process is not None else None
     return write_report_html(out, report, series, thumbs, figs)
 
