@@ -15,6 +15,8 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
     fit thread      receives the fits, writes the fit's chunks
     main thread     the exporters (and a second VideoReader when the overlay needs images) -> files;
                     the progress bar ("fit", as capture batch follows it) counts the frames written
+    worst-frames    once detection is done: a VideoReader that follows the exported frames and keeps
+    thread          the images of the worst so far for report.html (report_html.WorstFrameImages)
 
 Queues hold at most :data:`QUEUE_FRAMES` frames; the decoder works at most one group of detection
 segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector and frames are
