@@ -56,8 +56,9 @@ from models.fit import (FIT3D_PRESETS, FIT_PRESETS, ActorAtPoints, FitSettings, 
 __all__ = ["FrameFit", "fit_take", "fit_meshes", "resolve_settings", "resolved_settings_dict", "window_plan",
            "farthest_point_sample"]
 
-CACHE_VERSION = 4  # 2: SequenceFit has a jaw and coefficient base; 3: and a coefficient field; 4: LM with the
-#                   robust loss's curvature (models.fit_lm.REWEIGHTED_STEPS): other windows than 3's
+# 2: SequenceFit has a jaw and coefficient base; 3: and a coefficient field; 4: the LM solve uses the robust
+# loss's curvature (models.fit_lm.REWEIGHTED_STEPS), so its windows differ from version 3's
+CACHE_VERSION = 4
 
 
 @dataclass(frozen=True)

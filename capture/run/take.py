@@ -86,18 +86,17 @@ def confident_rms(f: Any, track, row: dict[int, int]) -> float | None:
     """RMS (px) between the fitted and the detected landmarks whose confidence is >= CONFIDENT.
 
     The detector's low-confidence landmarks (occluded, off the face) can be far off; they carry little
-    weight in the fit but would dominate a plain RMS (kept as ``reprojection_rms_all_px``).
+    weight in the fit but would dominate a plain RMS (kept as ``reprojection_rms_all_px``). The rule is
+    :func:`capture.export.overlay_draw.confident_rms`'s, which the stream also ranks the report's worst
+    frames by.
     """
+    from capture.export.overlay_draw import confident_rms as rms
+
     j = row.get(int(f.frame))
-    lf = getattr(f, "landmarks_fit", None)
-    if j is None or lf is None or not track.face_found[j]:
+    if j is None:
         return None
-    lf = np.asarray(lf, np.float64)
-    p = track.points[j]
-    ok = np.isfinite(p).all(1) & np.isfinite(lf).all(1)
-    if track.confidence is not None:
-        ok &= np.nan_to_num(track.confidence[j]) >= CONFIDENT
-    return float(np.sqrt(((lf[ok] - p[ok]) ** 2).sum(1).mean())) if ok.any() else None
+    return rms(f, Detection(track.points[j], None if track.confidence is None else track.confidence[j],
+                            bool(track.face_found[j])))
 
 
 def summarise_fit(fit_dir: Path, track) -> list[FrameSummary]:
