@@ -16,7 +16,9 @@ no function the model can represent): inputs are normalised to ``(c - center) / 
 template's bounding box, so they lie in [-1, 1]; B predicts the bone point as an offset from c,
 ``b = c + bone_offset_mm * B(.)``; D and E are scaled by ``thickness_mm`` and ``expression_mm``;
 N is normalised to unit length. At initialisation b is close to c, d and E close to zero, so the
-model starts near the template. An edited actor (``capture actor edit``) multiplies d by the
+model starts near the template. The networks read a point through the actor's input chart when it has
+one (:mod:`models.input_chart`: the template with the mouth a little open, so that the touching lips
+are apart); their outputs stay attached to ``c``. An edited actor (``capture actor edit``) multiplies d by the
 factors of its ``thickness_edits`` (:mod:`models.anatomy_edit`), functions of c like the networks.
 
 The model is stateless with respect to shapes and frames: per-shape jaw transforms are owned by
@@ -32,6 +34,7 @@ from torch import nn
 
 from models.aim_config import AIMConfig  # noqa: F401  (its home before)
 from models.checks import check_shape
+from models.input_chart import InputChart
 from models.lbs import lbs_jaw
 from models.rotation import rot6d_to_matrix
 from models.siren import Siren
@@ -71,29 +74,40 @@ class AnatomicalFaceModel(nn.Module):
         self.K = Siren(3, 1, output_scale=0.1, **siren)
         self.E = Siren(3, 3 * config.n_expressions, output_scale=0.1, **siren)
         self.thickness_edits = nn.ModuleList()  # anatomy edits (models/anatomy_edit.py); empty when learned
+        self.chart: InputChart | None = None     # where the networks read c (models/input_chart.py); None: at c
         self.register_buffer("center", torch.tensor(config.center, dtype=torch.float32))
         self.register_buffer("jaw_pivot", torch.tensor(config.jaw_pivot, dtype=torch.float32))
 
-    def normalize(self, c: torch.Tensor) -> torch.Tensor:
-        """Template points (mm) to network inputs in about [-1, 1]."""
-        return (c - self.center) / self.config.scale
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        """Chart points (mm; :meth:`chart_points`) to network inputs in about [-1, 1]."""
+        return (x - self.center) / self.config.scale
+
+    def chart_points(self, c: torch.Tensor, chart_triangles=None) -> torch.Tensor:
+        """Where the networks read template points ``c`` ``(*, P, 3)`` mm: ``c`` itself without a chart.
+        ``chart_triangles``: the points' triangles (:meth:`models.input_chart.InputChart.locate`), found when None."""
+        return c if self.chart is None else self.chart(c, chart_triangles)
+
+    def inputs(self, c: torch.Tensor, chart_triangles=None) -> torch.Tensor:
+        """The network inputs of template points ``c`` ``(*, P, 3)`` mm."""
+        return self.normalize(self.chart_points(c, chart_triangles))
 
     def bone(self, c: torch.Tensor) -> torch.Tensor:
         """Bone points ``(*, P, 3)`` mm at template points ``(*, P, 3)``."""
-        return c + self.config.bone_offset_mm * self.B(self.normalize(c))
+        return c + self.config.bone_offset_mm * self.B(self.inputs(c))
 
     NETWORKS = ("B", "D", "N", "K", "E")
 
-    def forward(self, c: torch.Tensor) -> Anatomy:
-        """Evaluate all five networks at template points ``c`` ``(*, P, 3)`` mm."""
+    def forward(self, c: torch.Tensor, chart_triangles=None) -> Anatomy:
+        """Evaluate all five networks at template points ``c`` ``(*, P, 3)`` mm (``chart_triangles``: see
+        :meth:`chart_points`; callers under ``torch.func`` transforms locate the points first)."""
         check_shape(c, "*,P,3", "template points")
-        x = self.normalize(c)
+        x = self.inputs(c, chart_triangles)
         return self.assemble(c, {name: getattr(self, name)(x) for name in self.NETWORKS})
 
     def assemble(self, c: torch.Tensor, raw: dict[str, torch.Tensor]) -> Anatomy:
         """The model outputs at points ``c`` from the networks' raw outputs ``raw[name]`` ``(*, P, out)``.
 
-        ``forward`` is ``assemble(c, {n: net_n(normalize(c))})``; a trainer that evaluates only some
+        ``forward`` is ``assemble(c, {n: net_n(inputs(c))})``; a trainer that evaluates only some
         networks at some points (or reuses their sine features) passes those, and the outputs of
         the missing networks are None (the neutral needs B, D and N).
         """

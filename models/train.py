@@ -45,6 +45,7 @@ import torch
 
 from models.aim import AIMConfig, AnatomicalFaceModel
 from models.checks import check_shapes
+from models.input_chart import InputChart
 from models.losses import (LossWeights, anatomy_losses, skin_position_loss, skinning_weight_loss,
                            symmetry_loss, thickness_regularizer)
 from models.precision import hidden_matmul_dtype, resolve_hidden_matmul
@@ -112,6 +113,10 @@ class TrainSettings:
     hidden_matmul_until: float = 0.85
     """With bfloat16 products, the fraction of the iterations that use them; the rest, every
     closed-form solve and every evaluation run in float32, so the actor ends as a float32 fit."""
+    input_chart: float = 0.0
+    """The networks read each template point this fraction of the way to the shape that tears the
+    neutral's surface most (the mouth opening, where the touching lips part; :mod:`models.input_chart`);
+    0 = at the point itself, as in the paper."""
     seed: int = 0
     weights: LossWeights = field(default_factory=LossWeights)
 
@@ -130,10 +135,11 @@ class TrainSettings:
 
 
 PRESETS: dict[str, TrainSettings] = {
-    "default": TrainSettings(hidden_lr_scale=3.0, symmetry_points=2048, hidden_matmul="auto"),
+    "default": TrainSettings(hidden_lr_scale=3.0, symmetry_points=2048, hidden_matmul="auto", input_chart=0.3),
     "fast": TrainSettings(iterations=2000, points_per_step=2048, importance=0.5, importance_reweight=False,
                           expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True,
-                          freeze_solved_layers=True, hidden_lr_scale=3.0, symmetry_points=256, hidden_matmul="auto"),
+                          freeze_solved_layers=True, hidden_lr_scale=3.0, symmetry_points=256, hidden_matmul="auto",
+                          input_chart=0.3),
     "paper": TrainSettings(iterations=10_000, lr=2e-3, lr_final_fraction=1.0, width=256, depth=3,
                            first_omega_0=30.0, hidden_omega_0=30.0, expression_solve_every=0, anatomy_solve=False,
                            jaw_skinning_prior=0.0, points_per_step=0, importance=0.0, solve_at_start=False),
@@ -159,6 +165,8 @@ class TrainingData:
     jaw_positions: torch.Tensor       # (N, J, 3) where those points are in each training shape
     symmetry_normal: torch.Tensor     # (3,) unit normal of the symmetry plane
     symmetry_offset: float            # plane {x : x . n = offset}
+    faces: torch.Tensor | None = None         # (T, 3) the template's triangles (for the input chart)
+    chart_offset: torch.Tensor | None = None  # (V, 3) mm, the input chart's move of each vertex; None: no chart
 
     def __post_init__(self):
         check_shapes({
@@ -168,6 +176,8 @@ class TrainingData:
             "forehead_points": (self.forehead_points, "F,3"), "jaw_points": (self.jaw_points, "J,3"),
             "jaw_positions": (self.jaw_positions, "N,J,3"),
             "symmetry_normal": (self.symmetry_normal, "3"),
+            **({} if self.chart_offset is None else {"chart_offset": (self.chart_offset, "V,3"),
+                                                     "faces": (self.faces, "T,3")}),
         })
         if self.shapes.shape[0] < 2:
             raise ValueError("training needs the neutral and at least one expression")
@@ -240,6 +250,14 @@ class ActorTrainer:
         self.settings = settings
         torch.manual_seed(settings.seed)
         self.model = AnatomicalFaceModel(config).to(self.device)
+        d = self.data
+        if d.chart_offset is not None:
+            self.model.chart = InputChart(d.template, d.faces, d.chart_offset).to(self.device)
+        with torch.no_grad():  # where the networks read each point set (models/input_chart.py), once
+            at = self.model.chart_points
+            self.chart = {"template": at(d.template), "constraint": at(d.constraint_points),
+                          "reflected": at(d.reflect(d.template)), "forehead": at(d.forehead_points),
+                          "jaw": at(d.jaw_points)}
         n_expr = config.n_expressions
         self.jaw_rot6d = torch.nn.Parameter(identity_6d(n_expr, device=self.device))
         # The jaw translation is optimised in units of ``length_unit_mm`` so that Adam's steps
@@ -331,10 +349,11 @@ class ActorTrainer:
         w, unit, d, model = self.settings.weights, self.settings.weights.length_unit_mm, self.data, self.model
         index = None if sample is None else sample.index
         pw = None if sample is None else sample.weights
-        c = d.template if index is None else d.template[index]
+        pick = lambda a, i: a if i is None else a[i]
+        c, xc = pick(d.template, index), pick(self.chart["template"], index)
         target = d.shapes if index is None else d.shapes[:, index]
         ci = None if sample is None else sample.constraint_index
-        cc = d.constraint_points if ci is None else d.constraint_points[ci]
+        cc, xcc = pick(d.constraint_points, ci), pick(self.chart["constraint"], ci)
         bone_t = d.bone_target if ci is None else d.bone_target[ci]
         thick_t = d.thickness_target if ci is None else d.thickness_target[ci]
         normal_t = d.normal_target if ci is None else d.normal_target[ci]
@@ -344,10 +363,10 @@ class ActorTrainer:
             ns = m if sample is None or self.settings.symmetry_points <= 0 else min(m, self.settings.symmetry_points)
             sym = slice(0, ns)
         reflected = d.reflect(c[sym])
-        x = model.normalize(torch.cat([c, cc, reflected], dim=0))
+        x = model.normalize(torch.cat([xc, xcc, pick(self.chart["reflected"], index)[sym]], dim=0))
         out_b = model.B(x)
         out_d, out_n = model.D(x[:m + mc]), model.N(x[:m + mc])
-        out_k = model.K(model.normalize(torch.cat([c, d.forehead_points, d.jaw_points], dim=0)))
+        out_k = model.K(model.normalize(torch.cat([xc, self.chart["forehead"], self.chart["jaw"]], dim=0)))
         skin = model.assemble(c, {"B": out_b[:m], "D": out_d[:m], "N": out_n[:m], "K": out_k[:m],
                                   "E": model.E(x[:m])})
         con = model.assemble(cc, {"B": out_b[m:m + mc], "D": out_d[m:], "N": out_n[m:]})
@@ -399,7 +418,7 @@ class ActorTrainer:
         The sine features of the five networks at the template points are computed once and
         shared by both solves (the output layers are all that changes between them).
         """
-        x = self.model.normalize(self.data.template)
+        x = self.model.normalize(self.chart["template"])
         features = {name: getattr(self.model, name).features(x) for name in self.model.NETWORKS}
         if anatomy:
             self.solve_anatomy(features)
@@ -409,7 +428,7 @@ class ActorTrainer:
         """(Anatomy at the template points, sine features per network) - features computed if None."""
         model = self.model
         if features is None:
-            x = model.normalize(self.data.template)
+            x = model.normalize(self.chart["template"])
             features = {name: getattr(model, name).features(x) for name in model.NETWORKS}
         raw = {name: getattr(model, name).output(h) for name, h in features.items()}
         return model.assemble(self.data.template, raw), features
@@ -504,7 +523,7 @@ class ActorTrainer:
         M[3 * h1:, 3 * h1:] += w.thickness_reg / (P * u2) * sd * sd * hD.T @ hD
         m = d.constraint_points.shape[0]
         if m:
-            xm = model.normalize(d.constraint_points)
+            xm = model.normalize(self.chart["constraint"])
             onem = torch.ones(m, 1, dtype=f64, device=c.device)
             hBm = torch.cat([model.B.features(xm).double(), onem], 1)
             hDm = torch.cat([model.D.features(xm).double(), onem], 1)
@@ -528,17 +547,22 @@ class ActorTrainer:
                 self.optimizer.state.pop(p, None)
                 self._solved.add(p)
 
+    def _at(self, c: torch.Tensor, points: str):
+        """``model(c)`` for one of the trainer's point sets, read at its chart points computed once."""
+        x = self.model.normalize(self.chart[points])
+        return self.model.assemble(c, {name: getattr(self.model, name)(x) for name in self.model.NETWORKS})
+
     @torch.no_grad()
     def evaluate(self) -> Evaluation:
         """Per-shape mean and max vertex error (mm) on every template point, and anatomy residuals."""
         self.model.eval()
         d = self.data
-        anatomy = self.model(d.template)
+        anatomy = self._at(d.template, "template")
         err = (self.model.training_shapes(anatomy, self.jaw_rot6d, self.jaw_t) - d.shapes).norm(dim=-1)
-        con = self.model(d.constraint_points)
+        con = self._at(d.constraint_points, "constraint")
         cosang = (con.normal * d.normal_target).sum(-1).clamp(-1, 1)
-        sym = (self.model.bone(d.reflect(d.template)) - d.reflect(anatomy.bone)).norm(dim=-1)
-        fore = self.model(d.forehead_points).skin_weight if d.forehead_points.shape[0] else torch.zeros(1)
+        sym = (self._at(d.reflect(d.template), "reflected").bone - d.reflect(anatomy.bone)).norm(dim=-1)
+        fore = self._at(d.forehead_points, "forehead").skin_weight if d.forehead_points.shape[0] else torch.zeros(1)
         return Evaluation(
             shape_mean_mm=[float(v) for v in err.mean(1)], shape_max_mm=[float(v) for v in err.max(1).values],
             bone_mm=float((con.bone - d.bone_target).norm(dim=-1).mean()) if len(cosang) else float("nan"),

@@ -13,7 +13,7 @@ import torch
 from capture.actor.training import TrainingProgress, progress_line, resolve_settings, time_left
 from models.losses import anatomy_losses, skinning_weight_loss
 from models.train import ActorTrainer, model_config_for
-from tests.tiny_actor import tiny_training_data
+from tests.tiny_actor import tiny_shapes, tiny_training_data
 
 
 @pytest.fixture(scope="module")
@@ -83,6 +83,41 @@ def test_losses_match_the_all_networks_reference(trainer):
         for name, value in ref.items():
             torch.testing.assert_close(fast[name], value, rtol=1e-4, atol=1e-9, msg=name)
         assert fast["symmetry"] != full.losses()["symmetry"]  # not all points
+
+
+@pytest.fixture(scope="module")
+def charted(tmp_path_factory):
+    """The fixture's training with an input chart (the tiny face 0.3 of the way to its jawOpen)."""
+    root = tmp_path_factory.mktemp("charted")
+    data, pivot = tiny_training_data(root)
+    shapes, faces = tiny_shapes()
+    data = replace(data, faces=torch.as_tensor(faces),
+                   chart_offset=torch.as_tensor(0.3 * (shapes["jawOpen"] - shapes["neutral"]), dtype=torch.float32))
+    settings = resolve_settings("fast", dict(width=32, iterations=100, points_per_step=400, importance=0.5,
+                                                importance_reweight=True, symmetry_points=150))
+    tr = ActorTrainer(data, settings, model_config_for(data, settings, pivot))
+    for _ in range(10):
+        tr.step()
+    tr.solve_output_layers()
+    return tr
+
+
+def test_a_charted_trainer_reads_every_point_set_through_its_chart(charted):
+    """The trainer's chart points, computed once per point set, are what ``model.forward`` reads (it charts
+    every call through the closest surface point): the same losses and evaluation as the reference."""
+    assert charted.model.chart is not None
+    test_losses_match_the_all_networks_reference(charted)
+    d, model = charted.data, charted.model
+    with torch.no_grad():
+        ev = charted.evaluate()
+        err = (model.training_shapes(model(d.template), charted.jaw_rot6d, charted.jaw_t) - d.shapes).norm(dim=-1)
+        sym = (model.bone(d.reflect(d.template)) - d.reflect(model(d.template).bone)).norm(dim=-1)
+        assert ev.shape_mean_mm == pytest.approx(err.mean(1).tolist(), rel=1e-5)
+        assert ev.symmetry_mm == pytest.approx(float(sym.mean()), rel=1e-5)
+        # and the chart is not the identity: without it the same networks give other losses
+        plain = copy.deepcopy(model)
+        plain.chart = None
+        assert abs(float(plain(d.template).expressions.sub(model(d.template).expressions).abs().max())) > 1e-3
 
 
 def test_importance_sampling_is_unbiased_and_looks_where_the_error_is(trainer):

@@ -106,7 +106,7 @@ def test_sample_mirrors_are_the_other_sides_scans():
     """On the bundled ICT sample: the mirror of each left scan is its right scan, and only the one-sided
     shapes are added, under the other side's name."""
     from capture.actor.sample import sample_shapes_dir
-    from capture.actor.training import with_mirrored_shapes
+    from capture.actor.training import mirror_map, with_mirrored_shapes
     from capture.io.meshes import load_shape_dir
     from models.face_frame import estimate_face_frame
 
@@ -124,6 +124,16 @@ def test_sample_mirrors_are_the_other_sides_scans():
         size = np.linalg.norm(d_right, axis=1)
         # ICT's identity is nearly symmetric (mirror distance median ~0.8 mm): the other side within 10 % of its motion
         assert err.mean() < 0.1 * size.mean(), (left, err.mean(), size.mean())
+    # Matched where the lips are apart (training.mirror_map), the lip corners get their own side's motion: the
+    # mirrors of the scanned mouthSmile_L and jawLeft are within 0.5 mm of the scanned right sides at every
+    # vertex; matched at the closed neutral, the lower lip's motion lands on the upper lip (2.6 / 3.6 mm).
+    opened = mirror_map(shapes, frame)
+    for left, right in (("mouthSmile_L", "mouthSmile_R"), ("jawLeft", "jawRight")):
+        d_left = shapes.vertices[idx[left]] - shapes.vertices[0]
+        d_right = shapes.vertices[idx[right]] - shapes.vertices[0]
+        worst = {name: np.linalg.norm(mirror_displacements(d_left[None], shapes.faces, m, frame.symmetry_normal)[0]
+                                      - d_right, axis=1).max() for name, m in (("open", opened), ("closed", mm))}
+        assert worst["open"] < 0.5 < 2.0 < worst["closed"], (left, worst)
     out, added, asym = with_mirrored_shapes(shapes, frame)
     assert 0 < asym["median_mm"] < 0.5 and asym["median_mm"] <= asym["p90_mm"] < 1.5   # ICT: 0.2 / 0.7 mm
     assert set(added) == {"browOuterUp_R", "cheekPuff_L", "mouthFrown_L", "mouthStretch_R", "noseSneer_R"}

@@ -203,6 +203,7 @@ class Actor:
 
         from models.aim import AnatomicalFaceModel
         from models.anatomy_edit import edits_from_state
+        from models.input_chart import chart_from_state
 
         name, config = self.metadata.get("name", self.path.name), self.config
         tensors = {k: torch.from_numpy(np.array(v)) for k, v in self._weights.items()}
@@ -210,6 +211,7 @@ class Actor:
             model = AnatomicalFaceModel(config)
             state = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
             model.thickness_edits.extend(edits_from_state(state))  # an edited actor's edits
+            model.chart = chart_from_state(state)                    # None for actors before the chart
             model.load_state_dict(state)
         except (RuntimeError, KeyError, ValueError, TypeError) as exc:
             first = str(exc).replace("\n", " ").replace("\t", " ")[:160]

@@ -35,8 +35,9 @@ from capture.io.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
 from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
 from models.bone_estimate import estimate_bone_surface
 from models.face_frame import FaceFrame, estimate_face_frame, estimate_jaw_pivot, forehead_region
-from models.mirror import (ONE_SIDED_THRESHOLD, mirror_displacements, mirror_points, mirrored_name, one_sided,
-                           other_side)
+from models.input_chart import tearing_shape
+from models.mirror import (ONE_SIDED_THRESHOLD, MirrorMap, mirror_displacements, mirror_points, mirrored_name,
+                           one_sided, other_side)
 from models.precision import HIDDEN_MATMUL
 from models.rotation import rot6d_to_matrix
 from models.train import PRESETS, ActorTrainer, Evaluation, TrainingData, TrainSettings, model_config_for
@@ -79,6 +80,9 @@ def resolve_settings(preset: str, overrides: dict) -> TrainSettings:
         raise CaptureError("iterations, lr, width and depth must be positive")
     if settings.hidden_matmul not in HIDDEN_MATMUL:
         raise CaptureError(f"unknown --hidden-matmul '{settings.hidden_matmul}': use one of {', '.join(HIDDEN_MATMUL)}")
+    if not 0 <= settings.input_chart < 1:
+        raise CaptureError(f"--input-chart must be a fraction in [0, 1) (got {settings.input_chart}); 0.3 is the "
+                           f"default, 0 reads every point where it is, as in the paper")
     return settings
 
 
@@ -112,23 +116,39 @@ def _constraint_template_points(con: AnatomyConstraints, template: np.ndarray, f
     return np.einsum("mk,mkc->mc", con.barycentric, tri)
 
 
+#: How far towards the lip-parting shape the neutral is opened where the mirror matches points (0 = the neutral).
+MIRROR_MATCH_OPEN = 0.3
 #: Median distance (mm) of the reflected neutral from itself above which the mirrored shapes are flagged as rough.
 MIRROR_ASYMMETRY_WARN_MM = 2.0
+
+
+def mirror_map(shapes: ShapeSet, frame: FaceFrame) -> MirrorMap:
+    """Where each vertex's mirror image lies on the face (:func:`models.mirror.mirror_points`).
+
+    Each reflected vertex is matched where the touching lips are apart: on the neutral ``MIRROR_MATCH_OPEN``
+    of the way to the shape that parts them (:func:`models.input_chart.tearing_shape`), as the input chart
+    reads it. At the closed neutral a reflected upper-lip vertex can land on the lower lip, and its mirrored
+    motion with it (ICT's noseSneer_R made from noseSneer_L: 3.3 mm off ICT's own noseSneer_R at the lip when
+    matched closed, 0.3 mm when matched open; BENCHMARKS.md)."""
+    v0 = shapes.vertices[0]
+    tear = tearing_shape(v0, shapes.faces, shapes.vertices)
+    match = v0 if tear.shape is None else v0 + MIRROR_MATCH_OPEN * (shapes.vertices[tear.shape] - v0)
+    surface = trimesh.Trimesh(match, shapes.faces, process=False)
+
+    def closest(points):
+        pts, _, tri = trimesh.proximity.closest_point(surface, points)
+        return pts, tri
+
+    return mirror_points(match, shapes.faces, frame.symmetry_normal, frame.symmetry_offset, closest)
 
 
 def with_mirrored_shapes(shapes: ShapeSet, frame: FaceFrame) -> tuple[ShapeSet, dict, dict]:
     """``shapes`` plus the other side of each one-sided expression (:mod:`models.mirror`); what was added:
     ``{new name: {"from": source name, "residual": relative residual against the given shapes}}``; and how
     symmetric the neutral is about the plane: ``{"median_mm", "p90_mm"}`` of the reflected vertices'
-    distances to the neutral surface (0.2 / 0.7 mm on the ICT sample)."""
-    neutral = shapes.neutral
+    distances to the surface where :func:`mirror_map` matches them (0.2 / 0.7 mm on the ICT sample)."""
     v0 = shapes.vertices[0]
-
-    def closest(points):
-        pts, _, tri = trimesh.proximity.closest_point(neutral, points)
-        return pts, tri
-
-    mmap = mirror_points(v0, shapes.faces, frame.symmetry_normal, frame.symmetry_offset, closest)
+    mmap = mirror_map(shapes, frame)
     disp = shapes.vertices[1:] - v0
     mirrored = mirror_displacements(disp, shapes.faces, mmap, frame.symmetry_normal)
     residual = one_sided(disp, mirrored)
@@ -220,6 +240,27 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
     return data, extras
 
 
+def with_input_chart(data: TrainingData, shapes: ShapeSet, fraction: float,
+                     report: Callable[[str], None]) -> tuple[TrainingData, dict]:
+    """``data`` with the input chart of ``fraction`` (:mod:`models.input_chart`), and what it is for the actor's record."""
+    if fraction <= 0:
+        return data, {"fraction": 0.0}
+    tear = tearing_shape(shapes.vertices[0], shapes.faces, shapes.vertices)
+    if tear.shape is None:
+        report(f"input chart: none (no shape parts the neutral's touching surfaces; {tear.touching} pairs of "
+               f"vertices touch)")
+        return data, {"fraction": 0.0, "touching_pairs": tear.touching}
+    name = shapes.names[tear.shape]
+    report(f"input chart: the networks read the template {fraction:g} of the way to {name}, where "
+           f"{tear.pairs} of the neutral's {tear.touching} touching vertex pairs part (worst "
+           f"{tear.worst_mm[0]:.2f} -> {tear.worst_mm[1]:.1f} mm)")
+    offset = fraction * (shapes.vertices[tear.shape] - shapes.vertices[0])
+    f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)
+    data = replace(data, faces=torch.as_tensor(np.asarray(shapes.faces), dtype=torch.int64), chart_offset=f32(offset))
+    return data, {"fraction": fraction, "shape": name, "tearing_pairs": tear.pairs, "touching_pairs": tear.touching,
+                  "worst_pair_mm": list(tear.worst_mm)}
+
+
 @contextlib.contextmanager
 def _restore_threads(n: int):
     try:
@@ -272,6 +313,8 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
         "bone_units": options.bone_units or options.units, "neutral": shapes.names[0],
         "symmetry_plane": options.symmetry_plane,
     }
+    if not settings.input_chart:  # a training without the chart keeps the fingerprint it had before charts
+        del resolved["settings"]["input_chart"]
     fingerprint_no_mirror = _fingerprint(inputs, resolved)   # a training without mirrors keeps the fingerprint it had
     if options.mirror:                                         # before they existed, so it still resumes
         resolved["mirror"] = True
@@ -286,6 +329,11 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                 raise CaptureError(f"actor '{options.actor}' has an unfinished training started without mirrored shapes "
                                    f"(--no-mirror, or before they were the default); add --no-mirror to resume it, or "
                                    f"pass --overwrite to start over with them")
+            unchanged = {**resolved, "settings": {k: v for k, v in resolved["settings"].items() if k != "input_chart"}}
+            if not options.overwrite and settings.input_chart and state.get("fingerprint") == _fingerprint(inputs, unchanged):
+                raise CaptureError(f"actor '{options.actor}' has an unfinished training started without the input chart "
+                                   f"(before it was the default); add --input-chart 0 to resume it, or pass --overwrite "
+                                   f"to start over with it")
             if not options.overwrite:
                 raise CaptureError(f"actor '{options.actor}' has an unfinished training with other shapes or settings "
                                    f"at {out}; rerun that command to resume it, or pass --overwrite to start over")
@@ -297,6 +345,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     t_prep = time.perf_counter()
     data, extras = prepare(options, shapes, report)
     shapes = extras["shapes"]
+    data, chart = with_input_chart(data, shapes, settings.input_chart, report)
     con: AnatomyConstraints = extras["constraints"]
     report(f"anatomy constraints: {len(con.thickness)} points ({100 * con.coverage:.1f} % of {con.n_vertices} "
            f"vertices), thickness median {np.median(con.thickness):.1f} mm")
@@ -374,7 +423,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
         "training": {"preset": options.preset, "settings": settings.to_dict(), "iterations": trainer.iteration,
                      "train_seconds": train_seconds, "train_cpu_seconds": train_cpu_seconds,
                      "prepare_seconds": prep_seconds, "device": options.device,
-                     "torch_threads": threads_used, "hidden_matmul": trainer.hidden_matmul,
+                     "torch_threads": threads_used, "hidden_matmul": trainer.hidden_matmul, "input_chart": chart,
                      "load_average": list(_load_average())},
         "quality": _evaluation_metadata(ev, shapes.names),
         "anatomy_constraints": {"count": int(len(con.thickness)), "coverage": float(con.coverage),

@@ -47,6 +47,7 @@ def train_command(
     points_per_step: Optional[int] = typer.Option(None, help="Template points per step, 0 = all (default: from the preset)."),
     seed: Optional[int] = typer.Option(None, help="Random seed (default: from the preset)."),
     hidden_matmul: Optional[str] = typer.Option(None, "--hidden-matmul", help="Precision of the hidden layers' products in the first 85 % of the steps: fp32, bf16, or auto (bf16 where this machine multiplies it 2x faster, e.g. CPUs with AMX; default: from the preset). Solves, evaluations and the last steps are float32."),
+    input_chart: Optional[float] = typer.Option(None, "--input-chart", help="The networks read each point this fraction of the way to the shape that parts the neutral's touching lips (jawOpen), so that the lips are apart where the networks look; 0 = at the point itself, as in the paper (default: from the preset, 0.3; paper 0)."),
     symmetry_plane: Optional[str] = typer.Option(None, help="Override the estimated symmetry plane: nx,ny,nz,offset_mm."),
     mirror: bool = typer.Option(True, "--mirror/--no-mirror", help="Also learn the other side of one-sided expressions (mouthStretch_L without mouthStretch_R: its scan reflected across the symmetry plane), so that fits can use both sides."),
     forehead: Optional[Path] = typer.Option(None, help="File of forehead vertex indices (JSON list or integers) overriding the automatic region."),
@@ -73,7 +74,8 @@ def train_command(
     options = TrainOptions(
         actor=actor, shapes=shapes, neutral=neutral, skull=skull, jaw=jaw, units=units, bone_units=bone_units,
         preset=preset, overrides=dict(iterations=iterations, lr=lr, width=width, depth=depth,
-                                      points_per_step=points_per_step, seed=seed, hidden_matmul=hidden_matmul),
+                                      points_per_step=points_per_step, seed=seed, hidden_matmul=hidden_matmul,
+                                      input_chart=input_chart),
         symmetry_plane=_parse_plane(symmetry_plane), forehead=forehead, trusted=trusted, device=device,
         overwrite=overwrite, threads=threads, mirror=mirror)
     console = Console(stderr=True)
@@ -177,6 +179,10 @@ def _show_metadata(actor, meta: dict, console: Console) -> None:
     if mirrored:
         console.print("mirrored shapes (the other side of one-sided scans, learned from their reflection): " +
                       ", ".join(f"{n} from {m['from']}" for n, m in mirrored.items()), highlight=False)
+    chart = meta.get("training", {}).get("input_chart") or {}
+    if chart.get("fraction"):
+        console.print(f"input chart: the networks read the template {chart['fraction']:g} of the way to {chart['shape']} "
+                      f"(where {chart['tearing_pairs']} touching vertex pairs part)", highlight=False)
     table = Table("shape", "mean error mm", "max error mm", title="training error per shape")
     for name, e in q["per_shape"].items():
         table.add_row(name, f"{e['mean_mm']:.4f}", f"{e['max_mm']:.3f}")

@@ -127,11 +127,13 @@ class _Problem:
         m = self.model
         n3, E = 3, self.E
 
+        x = c.detach().float()
+        tri = None if m.chart is None else m.chart.locate(x.numpy())[0]   # numpy: outside the jvp
+
         def f(x):
-            a = m(x)
+            a = m(x, chart_triangles=tri)
             return torch.cat([a.neutral, a.skin_weight[:, None], a.expressions.reshape(x.shape[0], E * 3)], dim=1)
 
-        x = c.detach().float()
         cols = []
         with torch.no_grad():
             for k in range(3):

@@ -1,0 +1,179 @@
+"""Where the networks read a template point: the input chart that opens the mouth.
+
+The five networks are functions of a template point's position. Where two parts of the surface touch
+in the neutral - the lips of a closed mouth - points a fraction of a millimetre apart move
+centimetres apart when the jaw opens (on the ICT sample 1,419 pairs within 1.5 mm of each other
+separate by more than 5x their distance in jawOpen; the worst pair 0.38 mm -> 14.6 mm). No smooth
+function of position separates them, so the networks blur the two lips into each other: before the
+chart, jawOpen's inner lip was the actor's worst vertex by 6.4 mm.
+
+The chart moves every template point by a fraction of the displacement of the shape that tears the
+surface most (the mouth-opening shape) before the networks read it, ``x = c + f (s_k(c) - s_0(c))``:
+a smooth deformation of the face everywhere, which puts the lips a few millimetres apart. It changes
+only where the networks are sampled; their outputs stay attached to ``c`` (the bone point is still
+``c + offset``) and the losses, constraints and networks are the paper's.
+
+A point ``c`` is charted through the closest point of the template surface: its triangle's
+barycentric blend of the vertex offsets. On the surface that is the point's own triangle (exactly
+0 mm away, against the other lip's 0.1 mm or more), so the chart is exact for vertices, landmarks
+and constraint points; points off the surface (the mirror images of the symmetry term) take the
+offset of the surface point nearest to them.
+
+Pure math and one torch module; choosing the shape (:func:`tearing_shape`) is numpy only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from models.checks import check_shape
+
+TOUCH_MM = 1.5
+"""Vertices closer than this in the neutral, and not sharing a triangle, count as touching."""
+TEAR_FACTOR = 5.0
+"""A touching pair tears in a shape where its distance grows past this factor (and past ``TEAR_MIN_MM``)."""
+TEAR_MIN_MM = 2.0
+MIN_TEARING_PAIRS = 20
+"""Fewer tearing pairs than this in every shape: no chart (the identity)."""
+
+
+@dataclass(frozen=True)
+class Tearing:
+    """The shape that tears the neutral's surface most, from :func:`tearing_shape`."""
+
+    shape: int | None          # index into the shapes (neutral first), None when no shape tears
+    pairs: int                 # touching pairs that tear in that shape
+    touching: int              # touching pairs in the neutral
+    worst_mm: tuple[float, float]  # the most torn pair: distance in the neutral and in the shape
+
+
+def tearing_shape(neutral: np.ndarray, faces: np.ndarray, shapes: np.ndarray) -> Tearing:
+    """The shape in which most touching vertex pairs of the neutral move apart.
+
+    Args:
+        neutral: ``(V, 3)`` mm; faces: ``(F, 3)`` vertex indices; shapes: ``(N, V, 3)`` mm, neutral first.
+    """
+    from scipy.spatial import cKDTree
+
+    neutral = np.asarray(neutral, dtype=np.float64)
+    pairs = cKDTree(neutral).query_pairs(TOUCH_MM, output_type="ndarray")
+    if len(pairs):
+        f = np.asarray(faces, dtype=np.int64)
+        edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        adjacent = {(int(a), int(b)) for a, b in np.sort(edges, axis=1)}  # a triangle's two vertices
+        pairs = np.sort(pairs, axis=1)
+        pairs = pairs[[(int(a), int(b)) not in adjacent for a, b in pairs]]
+    if not len(pairs):
+        return Tearing(None, 0, 0, (0.0, 0.0))
+    d0 = np.linalg.norm(neutral[pairs[:, 0]] - neutral[pairs[:, 1]], axis=-1)
+    s = np.asarray(shapes, dtype=np.float64)
+    dk = np.linalg.norm(s[:, pairs[:, 0]] - s[:, pairs[:, 1]], axis=-1)   # (N, pairs)
+    torn = (dk > TEAR_FACTOR * d0) & (dk > TEAR_MIN_MM)
+    counts = torn.sum(1)
+    counts[0] = 0
+    k = int(np.argmax(counts))
+    if counts[k] < MIN_TEARING_PAIRS:
+        return Tearing(None, int(counts[k]), len(pairs), (0.0, 0.0))
+    worst = int(np.argmax(np.where(torn[k], dk[k] / np.maximum(d0, 1e-6), -np.inf)))
+    return Tearing(k, int(counts[k]), len(pairs), (float(d0[worst]), float(dk[k, worst])))
+
+
+class InputChart(nn.Module):
+    """``x(c) = c + offset(c)``: the network input of template point ``c`` (mm in, mm out).
+
+    Buffers (saved with the model): ``vertices (V, 3)`` the template, mm; ``faces (F, 3)``;
+    ``offset (V, 3)`` mm, each vertex's move (a fraction of the tearing shape's displacement).
+    """
+
+    def __init__(self, vertices: torch.Tensor, faces: torch.Tensor, offset: torch.Tensor):
+        super().__init__()
+        check_shape(vertices, "V,3", "chart template vertices")
+        check_shape(offset, f"{vertices.shape[0]},3", "chart offsets")
+        check_shape(faces, "F,3", "chart faces")
+        self.register_buffer("vertices", vertices.detach().float().clone())
+        self.register_buffer("faces", faces.detach().long().clone())
+        self.register_buffer("offset", offset.detach().float().clone())
+        self._lookup = None
+
+    CANDIDATES = 8
+
+    @classmethod
+    def from_shape(cls, neutral: np.ndarray, faces: np.ndarray, shape: np.ndarray, fraction: float) -> "InputChart":
+        """The chart that moves the neutral ``fraction`` of the way to ``shape`` (both ``(V, 3)`` mm)."""
+        t = lambda a: torch.as_tensor(np.asarray(a))
+        return cls(t(neutral).float(), t(faces), t(fraction * (np.asarray(shape) - np.asarray(neutral))).float())
+
+    def _surface(self):
+        if self._lookup is None:
+            from scipy.spatial import cKDTree
+
+            v = self.vertices.cpu().double().numpy()
+            f = self.faces.cpu().numpy()
+            incident = np.full((len(v), np.bincount(f.ravel(), minlength=len(v)).max()), -1)  # faces at each vertex
+            order = np.argsort(f.ravel(), kind="stable")
+            vert = f.ravel()[order]
+            slot = np.arange(len(order)) - np.searchsorted(vert, vert)
+            incident[vert, slot] = order // 3
+            self._lookup = (cKDTree(v), cKDTree(v[f].mean(1)), incident, v, f)
+        return self._lookup
+
+    def locate(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(triangle index (P,), closest point (P, 3))`` of each point's closest surface point.
+
+        The closest point is searched among the triangles at the point's ``CANDIDATES`` nearest vertices and
+        the ``CANDIDATES`` triangles with the nearest centroids (exact point-triangle distances; no spatial
+        index to build, which took trimesh 1.4 s per actor): on a registered face mesh that holds the
+        closest triangle (checked against trimesh's exact query in the tests)."""
+        import trimesh
+
+        vtree, ctree, incident, v, f = self._surface()
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        k = min(self.CANDIDATES, len(v))
+        dist, nearest = vtree.query(p, k=k)
+        nearest = nearest.reshape(len(p), k)
+        tri = incident[nearest[:, 0], 0].copy()       # a vertex itself: any of its triangles
+        closest = p.copy()
+        off = np.flatnonzero(dist.reshape(len(p), k)[:, 0] > 0)
+        if len(off):
+            _, near_c = ctree.query(p[off], k=min(self.CANDIDATES, len(f)))
+            cand = np.concatenate([incident[nearest[off]].reshape(len(off), -1), near_c.reshape(len(off), -1)], axis=1)
+            row = np.repeat(np.arange(len(off)), cand.shape[1])
+            pair = np.unique((row * len(f) + cand.ravel())[cand.ravel() >= 0])   # each (point, triangle) once
+            row, pair_tri = pair // len(f), pair % len(f)
+            pts = trimesh.triangles.closest_point(v[f[pair_tri]], p[off][row])
+            order = np.lexsort((np.linalg.norm(pts - p[off][row], axis=-1), row))   # by point, nearest first
+            first = order[np.searchsorted(row[order], np.arange(len(off)))]
+            tri[off], closest[off] = pair_tri[first], pts[first]
+        return tri, closest
+
+    def forward(self, c: torch.Tensor, triangles: np.ndarray | None = None) -> torch.Tensor:
+        """Chart points ``(*, P, 3)`` mm of template points ``c (*, P, 3)`` mm.
+
+        Each point takes the barycentric blend of its triangle's vertex offsets at its projection onto the
+        triangle's plane: exact on the surface, the closest surface point's blend just off it, and affine in
+        ``c`` (so its derivative is the true one). ``triangles (P,)``: the points' triangles from
+        :meth:`locate`, for callers under ``torch.func`` transforms (the search runs in numpy)."""
+        flat = c.reshape(-1, 3)
+        if triangles is None:
+            triangles, _ = self.locate(flat.detach().cpu().numpy())
+        corners = self.faces[torch.as_tensor(np.asarray(triangles), device=self.faces.device)]   # (P, 3)
+        a, b, d = (self.vertices.to(c.dtype)[corners[:, k]] for k in range(3))
+        e0, e1, e2 = b - a, d - a, flat - a
+        d00, d01, d11 = (e0 * e0).sum(-1), (e0 * e1).sum(-1), (e1 * e1).sum(-1)
+        d20, d21 = (e2 * e0).sum(-1), (e2 * e1).sum(-1)
+        den = d00 * d11 - d01 * d01
+        wb, wc = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+        w = torch.stack([1 - wb - wc, wb, wc], -1)
+        moved = (w.unsqueeze(-1) * self.offset.to(c.dtype)[corners]).sum(1)
+        return c + moved.reshape(c.shape)
+
+
+def chart_from_state(state: dict[str, torch.Tensor]) -> InputChart | None:
+    """The chart saved in a model's ``state_dict`` (keys ``chart.*``), or None (actors before the chart)."""
+    if "chart.offset" not in state:
+        return None
+    return InputChart(state["chart.vertices"], state["chart.faces"], state["chart.offset"])
