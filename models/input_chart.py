@@ -99,7 +99,7 @@ class InputChart(nn.Module):
         self.register_buffer("offset", offset.detach().float().clone())
         self._lookup = None
 
-    CANDIDATES = 8
+    CANDIDATES = 6
 
     @classmethod
     def from_shape(cls, neutral: np.ndarray, faces: np.ndarray, shape: np.ndarray, fraction: float) -> "InputChart":
@@ -109,42 +109,40 @@ class InputChart(nn.Module):
 
     def _surface(self):
         if self._lookup is None:
-            from scipy.spatial import cKDTree
-
-            v = self.vertices.cpu().double().numpy()
-            f = self.faces.cpu().numpy()
-            incident = np.full((len(v), np.bincount(f.ravel(), minlength=len(v)).max()), -1)  # faces at each vertex
-            order = np.argsort(f.ravel(), kind="stable")
-            vert = f.ravel()[order]
+            v = self.vertices.detach().cpu().double().numpy()
+            f = self.faces.detach().cpu().numpy()
+            area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+            good = np.flatnonzero(area > 1e-9 * max(float(area.max()), 1e-300))   # no plane: never a chart triangle
+            corners = f[good].ravel()
+            incident = np.full((len(v), max(1, np.bincount(corners, minlength=len(v)).max())), -1)  # faces at each vertex
+            order = np.argsort(corners, kind="stable")
+            vert = corners[order]
             slot = np.arange(len(order)) - np.searchsorted(vert, vert)
-            incident[vert, slot] = order // 3
-            self._lookup = (cKDTree(v), cKDTree(v[f].mean(1)), incident, v, f)
+            incident[vert, slot] = good[order // 3]
+            rows = {r.tobytes(): i for i, r in enumerate(v) if incident[i, 0] >= 0}
+            self._lookup = (rows, torch.as_tensor(v, dtype=torch.float32), incident, v, f)
         return self._lookup
 
     def locate(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(triangle index (P,), closest point (P, 3))`` of each point's closest surface point.
 
-        The closest point is searched among the triangles at the point's ``CANDIDATES`` nearest vertices and
-        the ``CANDIDATES`` triangles with the nearest centroids (exact point-triangle distances; no spatial
-        index to build, which took trimesh 1.4 s per actor): on a registered face mesh that holds the
-        closest triangle (checked against trimesh's exact query in the tests)."""
-        import trimesh
-
-        vtree, ctree, incident, v, f = self._surface()
+        A template vertex takes one of its triangles. Other points search the triangles at their ``CANDIDATES``
+        nearest vertices (exact point-triangle distances): on a registered face mesh that holds the closest
+        triangle (checked against trimesh's exact query in the tests, on the face, off it and mirrored).
+        Brute-force neighbours in torch, no spatial index: trimesh's took 1.4 s to build per actor, and the
+        streamed fit process imports neither scipy nor trimesh."""
+        rows, vt, incident, v, f = self._surface()
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        k = min(self.CANDIDATES, len(v))
-        dist, nearest = vtree.query(p, k=k)
-        nearest = nearest.reshape(len(p), k)
-        tri = incident[nearest[:, 0], 0].copy()       # a vertex itself: any of its triangles
+        at = np.array([rows.get(r.tobytes(), -1) for r in p], dtype=np.int64)
+        tri = np.where(at >= 0, incident[np.maximum(at, 0), 0], -1)
         closest = p.copy()
-        off = np.flatnonzero(dist.reshape(len(p), k)[:, 0] > 0)
+        off = np.flatnonzero(at < 0)
         if len(off):
-            _, near_c = ctree.query(p[off], k=min(self.CANDIDATES, len(f)))
-            cand = np.concatenate([incident[nearest[off]].reshape(len(off), -1), near_c.reshape(len(off), -1)], axis=1)
+            cand = incident[_nearest(p[off], vt, self.CANDIDATES)].reshape(len(off), -1)
             row = np.repeat(np.arange(len(off)), cand.shape[1])
             pair = np.unique((row * len(f) + cand.ravel())[cand.ravel() >= 0])   # each (point, triangle) once
             row, pair_tri = pair // len(f), pair % len(f)
-            pts = trimesh.triangles.closest_point(v[f[pair_tri]], p[off][row])
+            pts = closest_on_triangles(v[f[pair_tri]], p[off][row])
             order = np.lexsort((np.linalg.norm(pts - p[off][row], axis=-1), row))   # by point, nearest first
             first = order[np.searchsorted(row[order], np.arange(len(off)))]
             tri[off], closest[off] = pair_tri[first], pts[first]
@@ -170,6 +168,41 @@ class InputChart(nn.Module):
         w = torch.stack([1 - wb - wc, wb, wc], -1)
         moved = (w.unsqueeze(-1) * self.offset.to(c.dtype)[corners]).sum(1)
         return c + moved.reshape(c.shape)
+
+
+def _nearest(points: np.ndarray, sites: torch.Tensor, k: int, chunk: int = 2048) -> np.ndarray:
+    """``(P, k)`` indices of the ``k`` nearest of ``sites (S, 3)`` to each of ``points (P, 3)`` (brute force)."""
+    k = min(k, sites.shape[0])
+    out = []
+    for s in range(0, len(points), chunk):
+        d = torch.cdist(torch.as_tensor(points[s:s + chunk], dtype=sites.dtype), sites)
+        out.append(d.topk(k, dim=1, largest=False).indices.numpy())
+    return np.concatenate(out)
+
+
+def closest_on_triangles(triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(P, 3)``: the closest point of triangle ``triangles[p] (P, 3, 3)`` to ``points[p] (P, 3)``.
+
+    The projection onto the triangle's plane where it falls inside, else the nearest point of its three
+    edges (as ``trimesh.triangles.closest_point``, which the tests compare; here without importing trimesh)."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    e0, e1, e2 = b - a, c - a, points - a
+    d00, d01, d11 = (e0 * e0).sum(-1), (e0 * e1).sum(-1), (e1 * e1).sum(-1)
+    d20, d21 = (e2 * e0).sum(-1), (e2 * e1).sum(-1)
+    den = np.where(np.abs(d00 * d11 - d01 * d01) > 0, d00 * d11 - d01 * d01, 1.0)
+    wb, wc = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+    best = a + wb[:, None] * e0 + wc[:, None] * e1
+    inside = (wb >= 0) & (wc >= 0) & (wb + wc <= 1)
+    edge_best, edge_d = None, np.full(len(points), np.inf)
+    for s, t in ((a, b), (b, c), (c, a)):
+        seg = t - s
+        u = np.clip(((points - s) * seg).sum(-1) / np.maximum((seg * seg).sum(-1), 1e-300), 0.0, 1.0)
+        q = s + u[:, None] * seg
+        dq = np.linalg.norm(points - q, axis=-1)
+        better = dq < edge_d
+        edge_d = np.where(better, dq, edge_d)
+        edge_best = q if edge_best is None else np.where(better[:, None], q, edge_best)
+    return np.where(inside[:, None], best, edge_best)
 
 
 def chart_from_state(state: dict[str, torch.Tensor]) -> InputChart | None:
