@@ -3,9 +3,9 @@
     python scripts/make_demo_actor.py [--from ACTOR_DIR]
 
 ``capture demo`` must finish in minutes, so it ships a pretrained actor instead of training one
-(training takes about 25 minutes on 2 CPU cores). This script makes it the way a user would:
-``capture actor train <tmp> --sample`` with the default preset (or takes an actor trained that way
-with ``--from``), then copies the package to ``capture/data/demo_actor/``.
+(training takes about 13.5 minutes on 2 CPU cores with AMX, longer without). This script makes it
+the way a user would: ``capture actor train <tmp> --sample`` with the default preset (or takes an
+actor trained that way with ``--from``), then copies the package to ``capture/data/demo_actor/``.
 """
 
 from __future__ import annotations
