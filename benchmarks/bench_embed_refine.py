@@ -76,7 +76,9 @@ def main(argv=None) -> dict:
     torch.set_num_threads(1)
     settings = RefineSettings(rounds=a.rounds, iterations=a.iterations, reg=a.reg)
     if a.quick:
-        a.landmarks, a.frames = 12, 4
+        # 12 landmarks over 4 frames underdetermine the embeddings (fitted to 0.04 px, 3.5 mm off on one actor,
+        # 2.5 on another); 24 over 6 reduce the error on both, on every seed tried (0-2)
+        a.landmarks, a.frames = 24, 6
         settings = RefineSettings(rounds=2, iterations=10)
     actor = load_actor(a.actor)
     c_true, start, obs, K = make_case(actor, a.landmarks, a.frames, a.noise, a.yaw, a.perturb, a.seed)
