@@ -82,6 +82,13 @@ def tearing_shape(neutral: np.ndarray, faces: np.ndarray, shapes: np.ndarray) ->
     return Tearing(k, int(counts[k]), len(pairs), (float(d0[worst]), float(dk[k, worst])))
 
 
+def opened(shapes: np.ndarray, tear: Tearing, fraction: float) -> np.ndarray:
+    """``(V, 3)`` mm: the neutral ``shapes[0]`` moved ``fraction`` of the way to the tearing shape (the neutral
+    itself when no shape tears). ``shapes (N, V, 3)``, neutral first; ``tear`` from :func:`tearing_shape`."""
+    s0 = np.asarray(shapes[0], dtype=np.float64)
+    return s0 if tear.shape is None else s0 + fraction * (np.asarray(shapes[tear.shape], np.float64) - s0)
+
+
 class InputChart(nn.Module):
     """``x(c) = c + offset(c)``: the network input of template point ``c`` (mm in, mm out).
 

@@ -547,10 +547,11 @@ class ActorTrainer:
                 self.optimizer.state.pop(p, None)
                 self._solved.add(p)
 
-    def _at(self, c: torch.Tensor, points: str):
-        """``model(c)`` for one of the trainer's point sets, read at its chart points computed once."""
+    def _at(self, c: torch.Tensor, points: str, networks=AnatomicalFaceModel.NETWORKS):
+        """``model(c)`` for one of the trainer's point sets, read at its chart points computed once (only
+        ``networks`` evaluated)."""
         x = self.model.normalize(self.chart[points])
-        return self.model.assemble(c, {name: getattr(self.model, name)(x) for name in self.model.NETWORKS})
+        return self.model.assemble(c, {name: getattr(self.model, name)(x) for name in networks})
 
     @torch.no_grad()
     def evaluate(self) -> Evaluation:
@@ -561,7 +562,7 @@ class ActorTrainer:
         err = (self.model.training_shapes(anatomy, self.jaw_rot6d, self.jaw_t) - d.shapes).norm(dim=-1)
         con = self._at(d.constraint_points, "constraint")
         cosang = (con.normal * d.normal_target).sum(-1).clamp(-1, 1)
-        sym = (self._at(d.reflect(d.template), "reflected").bone - d.reflect(anatomy.bone)).norm(dim=-1)
+        sym = (self._at(d.reflect(d.template), "reflected", ("B",)).bone - d.reflect(anatomy.bone)).norm(dim=-1)
         fore = self._at(d.forehead_points, "forehead").skin_weight if d.forehead_points.shape[0] else torch.zeros(1)
         return Evaluation(
             shape_mean_mm=[float(v) for v in err.mean(1)], shape_max_mm=[float(v) for v in err.max(1).values],

@@ -35,7 +35,7 @@ from capture.io.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
 from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
 from models.bone_estimate import estimate_bone_surface
 from models.face_frame import FaceFrame, estimate_face_frame, estimate_jaw_pivot, forehead_region
-from models.input_chart import tearing_shape
+from models.input_chart import Tearing, opened, tearing_shape
 from models.mirror import (ONE_SIDED_THRESHOLD, MirrorMap, mirror_displacements, mirror_points, mirrored_name,
                            one_sided, other_side)
 from models.precision import HIDDEN_MATMUL
@@ -122,17 +122,18 @@ MIRROR_MATCH_OPEN = 0.3
 MIRROR_ASYMMETRY_WARN_MM = 2.0
 
 
-def mirror_map(shapes: ShapeSet, frame: FaceFrame) -> MirrorMap:
+def mirror_map(shapes: ShapeSet, frame: FaceFrame, tear: Tearing | None = None) -> MirrorMap:
     """Where each vertex's mirror image lies on the face (:func:`models.mirror.mirror_points`).
 
     Each reflected vertex is matched where the touching lips are apart: on the neutral ``MIRROR_MATCH_OPEN``
     of the way to the shape that parts them (:func:`models.input_chart.tearing_shape`), as the input chart
     reads it. At the closed neutral a reflected upper-lip vertex can land on the lower lip, and its mirrored
     motion with it (ICT's noseSneer_R made from noseSneer_L: 3.3 mm off ICT's own noseSneer_R at the lip when
-    matched closed, 0.3 mm when matched open; BENCHMARKS.md)."""
-    v0 = shapes.vertices[0]
-    tear = tearing_shape(v0, shapes.faces, shapes.vertices)
-    match = v0 if tear.shape is None else v0 + MIRROR_MATCH_OPEN * (shapes.vertices[tear.shape] - v0)
+    matched closed, 0.3 mm when matched open; BENCHMARKS.md). ``tear``: :func:`models.input_chart.tearing_shape`
+    of ``shapes``, found when None."""
+    if tear is None:
+        tear = tearing_shape(shapes.vertices[0], shapes.faces, shapes.vertices)
+    match = opened(shapes.vertices, tear, MIRROR_MATCH_OPEN)
     surface = trimesh.Trimesh(match, shapes.faces, process=False)
 
     def closest(points):
@@ -142,13 +143,14 @@ def mirror_map(shapes: ShapeSet, frame: FaceFrame) -> MirrorMap:
     return mirror_points(match, shapes.faces, frame.symmetry_normal, frame.symmetry_offset, closest)
 
 
-def with_mirrored_shapes(shapes: ShapeSet, frame: FaceFrame) -> tuple[ShapeSet, dict, dict]:
+def with_mirrored_shapes(shapes: ShapeSet, frame: FaceFrame,
+                         tear: Tearing | None = None) -> tuple[ShapeSet, dict, dict]:
     """``shapes`` plus the other side of each one-sided expression (:mod:`models.mirror`); what was added:
     ``{new name: {"from": source name, "residual": relative residual against the given shapes}}``; and how
     symmetric the neutral is about the plane: ``{"median_mm", "p90_mm"}`` of the reflected vertices'
     distances to the surface where :func:`mirror_map` matches them (0.2 / 0.7 mm on the ICT sample)."""
     v0 = shapes.vertices[0]
-    mmap = mirror_map(shapes, frame)
+    mmap = mirror_map(shapes, frame, tear)
     disp = shapes.vertices[1:] - v0
     mirrored = mirror_displacements(disp, shapes.faces, mmap, frame.symmetry_normal)
     residual = one_sided(disp, mirrored)
@@ -184,8 +186,9 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
         frame_source = "given by --symmetry-plane"
     mirrored: dict = {}
     asymmetry = None
+    tear = tearing_shape(shapes.vertices[0], shapes.faces, shapes.vertices)   # for the mirror and the input chart
     if options.mirror:
-        shapes, mirrored, asymmetry = with_mirrored_shapes(shapes, frame)
+        shapes, mirrored, asymmetry = with_mirrored_shapes(shapes, frame, tear)
         if mirrored:
             report("mirrored shapes added (the other side of one-sided expressions): " +
                    ", ".join(f"{n} from {m['from']}" for n, m in mirrored.items()))
@@ -236,16 +239,17 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
     extras = dict(frame=frame, frame_source=frame_source, forehead_idx=fore_idx, forehead_source=fore_source,
                   bones=bones, bones_estimated=estimated, constraints=con, jaw_pivot=pivot,
                   trusted_source=trusted_source, shapes=shapes, mirrored=mirrored,
-                  mirror_asymmetry=asymmetry)
+                  mirror_asymmetry=asymmetry, tearing=tear)
     return data, extras
 
 
-def with_input_chart(data: TrainingData, shapes: ShapeSet, fraction: float,
+def with_input_chart(data: TrainingData, shapes: ShapeSet, tear: Tearing, fraction: float,
                      report: Callable[[str], None]) -> tuple[TrainingData, dict]:
-    """``data`` with the input chart of ``fraction`` (:mod:`models.input_chart`), and what it is for the actor's record."""
+    """``data`` with the input chart of ``fraction`` (:mod:`models.input_chart`), and what it is for the actor's
+    record. ``tear``: :func:`models.input_chart.tearing_shape` of the scans (``extras["tearing"]`` of
+    :func:`prepare`; the mirrored shapes come after the scans, so its index holds in ``shapes``)."""
     if fraction <= 0:
         return data, {"fraction": 0.0}
-    tear = tearing_shape(shapes.vertices[0], shapes.faces, shapes.vertices)
     if tear.shape is None:
         report(f"input chart: none (no shape parts the neutral's touching surfaces; {tear.touching} pairs of "
                f"vertices touch)")
@@ -254,7 +258,7 @@ def with_input_chart(data: TrainingData, shapes: ShapeSet, fraction: float,
     report(f"input chart: the networks read the template {fraction:g} of the way to {name}, where "
            f"{tear.pairs} of the neutral's {tear.touching} touching vertex pairs part (worst "
            f"{tear.worst_mm[0]:.2f} -> {tear.worst_mm[1]:.1f} mm)")
-    offset = fraction * (shapes.vertices[tear.shape] - shapes.vertices[0])
+    offset = opened(shapes.vertices, tear, fraction) - shapes.vertices[0]
     f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)
     data = replace(data, faces=torch.as_tensor(np.asarray(shapes.faces), dtype=torch.int64), chart_offset=f32(offset))
     return data, {"fraction": fraction, "shape": name, "tearing_pairs": tear.pairs, "touching_pairs": tear.touching,
@@ -345,7 +349,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     t_prep = time.perf_counter()
     data, extras = prepare(options, shapes, report)
     shapes = extras["shapes"]
-    data, chart = with_input_chart(data, shapes, settings.input_chart, report)
+    data, chart = with_input_chart(data, shapes, extras["tearing"], settings.input_chart, report)
     con: AnatomyConstraints = extras["constraints"]
     report(f"anatomy constraints: {len(con.thickness)} points ({100 * con.coverage:.1f} % of {con.n_vertices} "
            f"vertices), thickness median {np.median(con.thickness):.1f} mm")
