@@ -172,14 +172,23 @@ def smooth_crop(prev: Crop | None, new: Crop, alpha_centre: float, alpha_size: f
                 prev.size + alpha_size * (new.size - prev.size), prev.angle_deg + alpha_centre * da)
 
 
+def _on_block_grid(lo: int, hi: int, size: int, f: int) -> tuple[int, int]:
+    """``[lo, hi)`` widened to the frame's grid of ``f``-pixel blocks (the incomplete block at the frame's
+    end dropped): the reduced region is then part of the whole frame reduced once, whatever the crop, and
+    OpenCV's area reduction takes its exact-factor path (0.2 against 3.6 ms for a 600 px region halved)."""
+    lo -= lo % f
+    return lo, min(lo + -(-(hi - lo) // f) * f, size // f * f)
+
+
 def warp_crop(frame: np.ndarray, crop: Crop, input_size: tuple[int, int]) -> np.ndarray:
     """Resample the crop of ``frame`` (H, W[, C]) into an input-sized image (bilinear, black outside).
 
     When the crop shrinks the frame by more than 2x, the frame is first reduced with area averaging
     by an integer factor (anti-aliasing); the geometry stays exact because the reduction's own
-    pixel mapping (``p' = (p - o + 0.5) * s - 0.5``) is folded into the affine. Only the part of the
+    pixel mapping (``p' = (p - o + 0.5) / f - 0.5``) is folded into the affine. Only the part of the
     frame that the crop covers (``o`` its corner, with a margin of two reduced pixels) is reduced:
-    for a face of 300 px in a 1280x720 frame that is a tenth of the work of reducing the whole frame.
+    for a face of 300 px in a 1280x720 frame that is a tenth of the work of reducing the whole frame. The
+    region is on the frame's grid of ``f x f`` blocks, so the result is that of the whole frame reduced.
     """
     import cv2
 
@@ -195,16 +204,14 @@ def warp_crop(frame: np.ndarray, crop: Crop, input_size: tuple[int, int]) -> np.
         pad = 2 * f + 1
         x0, y0 = (max(0, int(math.floor(v)) - pad) for v in corners.min(0))
         x1, y1 = min(w, int(math.ceil(corners[:, 0].max())) + pad), min(h, int(math.ceil(corners[:, 1].max())) + pad)
-        if x1 <= x0 or y1 <= y0:        # the crop is off the frame: all black
+        x0, x1 = _on_block_grid(x0, x1, w, f)
+        y0, y1 = _on_block_grid(y0, y1, h, f)
+        if x1 <= x0 or y1 <= y0:        # the crop is off the frame (or on its last, incomplete blocks): black
             return np.zeros((out_h, out_w) + frame.shape[2:], frame.dtype)
-        roi = frame[y0:y1, x0:x1]
-        rw, rh = x1 - x0, y1 - y0
-        dw, dh = max(1, int(round(rw / f))), max(1, int(round(rh / f)))
-        src = cv2.resize(roi, (dw, dh), interpolation=cv2.INTER_AREA)
-        sx, sy = dw / rw, dh / rh
-        # p = (p' + 0.5) / s - 0.5 + o  =>  q = A p + t = A diag(1/s) p' + A (0.5/s - 0.5 + o) + t
+        src = cv2.resize(frame[y0:y1, x0:x1], ((x1 - x0) // f, (y1 - y0) // f), interpolation=cv2.INTER_AREA)
+        # reduced pixel p' covers frame pixels o + f p' ... o + f p' + f - 1, so p = f p' + (f - 1) / 2 + o
+        # and q = A p + t = (f A) p' + A ((f - 1) / 2 + o) + t
         a = m[:, :2]
-        inv_s = np.array([1.0 / sx, 1.0 / sy])
-        m = np.hstack([a * inv_s[None, :], (m[:, 2] + a @ (0.5 * inv_s - 0.5 + np.array([x0, y0])))[:, None]])
+        m = np.hstack([a * f, (m[:, 2] + a @ (0.5 * (f - 1) + np.array([x0, y0], np.float64)))[:, None]])
     return cv2.warpAffine(src, m, (out_w, out_h), flags=cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
