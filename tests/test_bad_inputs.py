@@ -477,6 +477,8 @@ DET_CASES = {
     "det_onnx_garbage": lambda e, d: run_args(e, None, None, "default", None, "--detector",
                                               det_copy(e, d, onnx_bytes=b"not a model")),
     "det_onnx_empty": lambda e, d: run_args(e, None, None, "default", None, "--detector", det_copy(e, d, onnx_bytes=b"")),
+    "det_spec_given": lambda e, d: run_args(e, None, None, "default", None, "--detector",
+                                            det_copy(e, d).with_suffix(".json")),
     "det_none_beside": lambda e, d: run_args(e, video=(lambda p: (shutil.copy(e.video, p), p)[1])(d / "copy.mp4")),
 }
 

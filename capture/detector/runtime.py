@@ -153,6 +153,10 @@ class Detector:
         batch dimension is dynamic (a fixed batch size > 1 is filled up by repeating the last crop).
         """
         onnx_path = Path(onnx_path)
+        if onnx_path.suffix.lower() == ".json":   # the spec given where the model is expected
+            model = onnx_path.with_suffix(".onnx")
+            raise CaptureError(f"--detector takes the ONNX model, and {onnx_path.name} is its spec; pass "
+                               + (str(model) if model.is_file() else "the .onnx file that this spec describes"))
         if not onnx_path.is_file():
             raise CaptureError(f"detector model {onnx_path} does not exist; check the --detector path")
         spec = load_detector_spec(spec_path if spec_path is not None else onnx_path.with_suffix(".json"))
