@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from calib.board import BoardSpec, parse_board
+from calib.board_hint import board_hint, sample_evenly
 from calib.calibrate import CalibrationOptions, CalibrationResult, calibrate_views
 from calib.camera_io import camera_to_dict, write_camera
 from calib.detect import BoardDetector
@@ -120,7 +121,13 @@ def _check_settings(s: CalibrateSettings) -> BoardSpec:
     return board
 
 
-def _detect_all(footage, detector, board, settings) -> tuple[list[Candidate], list[Dropped], int]:
+#: Frames without a board kept to say what they show when no frame has the board (calib.board_hint).
+HINT_FRAMES = 5
+
+
+def _detect_all(footage, detector, board, settings) -> tuple[list[Candidate], list[Dropped], int, list]:
+    """Candidates, dropped frames, frames examined, and up to :data:`HINT_FRAMES` grayscale frames spread over
+    the footage in which no board was found (for :func:`calib.board_hint.board_hint`; empty once one is)."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -128,6 +135,8 @@ def _detect_all(footage, detector, board, settings) -> tuple[list[Candidate], li
     candidates: list[Candidate] = []
     dropped: list[Dropped] = []
     examined = 0
+    kept = set(sample_evenly(list(range(total)), HINT_FRAMES))   # frames kept for board_hint if nothing is found
+    without_board: list = []                                      # their grayscale images (uint8)
     progress = Progress(TextColumn("detecting board"), BarColumn(), MofNCompleteColumn(),
                         TimeRemainingColumn(), console=Console(stderr=True), disable=not settings.progress,
                         transient=True)
@@ -140,10 +149,12 @@ def _detect_all(footage, detector, board, settings) -> tuple[list[Candidate], li
                 detection, reason = check_detection(detection, board.square_mm, detector.min_corners)
             if detection is None:
                 dropped.append(Dropped(label, frame, reason))
+                if examined - 1 in kept and not candidates:
+                    without_board.append(gray)
             else:
                 candidates.append(make_candidate(label, frame, gray, detection, board.square_mm))
             progress.advance(task)
-    return candidates, dropped, examined
+    return candidates, dropped, examined, ([] if candidates else without_board)
 
 
 def run_calibrate(settings: CalibrateSettings) -> CalibrateOutputs:
@@ -154,14 +165,16 @@ def run_calibrate(settings: CalibrateSettings) -> CalibrateOutputs:
     detector = BoardDetector(board, settings.min_corners)
 
     t_detect = time.perf_counter()
-    candidates, dropped, examined = _detect_all(footage, detector, board, settings)
+    candidates, dropped, examined, without_board = _detect_all(footage, detector, board, settings)
     t_select = time.perf_counter()
     if not candidates:
         reasons = collections.Counter(_category(d.reason) for d in dropped)
+        hint = board_hint(without_board, board)
         raise CaptureError(
             f"no board found in any of the {examined} frames examined in {settings.input} "
-            f"({_summary(reasons)}); check --board {board.text()} (charuco cols/rows count squares, "
-            "checker cols/rows count inner corners) and the ArUco dictionary"
+            f"({_summary(reasons)}); " + (hint if hint else
+                                          f"check --board {board.text()} (charuco cols/rows count squares, "
+                                          "checker cols/rows count inner corners) and the ArUco dictionary")
         )
     chosen, more_dropped = select_views(candidates, footage.image_size, settings.max_views,
                                         settings.max_blur, settings.duplicate_px)

@@ -282,7 +282,8 @@ def test_error_no_board_in_any_frame(tmp_path, capsys):
     write_images(tmp_path / "noise", [rng.integers(0, 255, (480, 640), dtype=np.uint8) for _ in range(3)])
     code, _, err = run(["calibrate", str(tmp_path / "noise"), "--board", CHARUCO_SPEC, "--out",
                         str(tmp_path / "c.json"), "--no-progress"], capsys)
-    assert_one_line_error(code, err, "no board found in any of the 3 frames", "3 no board detected")
+    assert_one_line_error(code, err, "no board found in any of the 3 frames", "3 no board detected", "check --board",
+                          "ArUco dictionary")
 
 
 def test_error_too_few_views(charuco, tmp_path, capsys):
@@ -293,10 +294,52 @@ def test_error_too_few_views(charuco, tmp_path, capsys):
 
 
 def test_error_wrong_board_gives_no_board(charuco_folder, tmp_path, capsys):
+    """The footage's own dictionary is named (the smallest of its family that holds the ids seen), and the
+    spec it suggests reads the board."""
     code, _, err = run(["calibrate", str(charuco_folder), "--board",
                         "charuco:cols=9,rows=7,square=30,marker=22,dict=DICT_4X4_50", "--out",
                         str(tmp_path / "c.json"), "--no-progress"], capsys)
-    assert_one_line_error(code, err, "no board found in any of the 16 frames", "ArUco dictionary")
+    suggested = "charuco:cols=9,rows=7,square=30,marker=22,dict=DICT_5X5_50"
+    assert_one_line_error(code, err, "no board found in any of the 16 frames", "markers of DICT_5X5_50 are in view",
+                          "none of DICT_4X4_50", f"try --board {suggested}")
+    image = cv2.imread(str(sorted(charuco_folder.iterdir())[0]), cv2.IMREAD_GRAYSCALE)
+    assert BoardDetector(parse_board(suggested)).detect(image)[0] is not None
+
+
+def _views(spec: str, n: int = 5) -> list[np.ndarray]:
+    renderer = Renderer(spec)
+    poses = random_poses(renderer.board, TRUE_K, IMAGE_SIZE, n, seed=3, fully_visible=renderer.board.kind == "checker")
+    rng = np.random.default_rng(1)
+    return [renderer.render(p, rng=rng) for p in poses]
+
+
+def test_board_hint_names_charuco_markers_seen_as_a_checkerboard():
+    """A ChArUco board given as a checkerboard of other dimensions: its markers are named (the CLI finds the
+    8x6 chessboard of this ChArUco board's squares in some views and calibrates from those)."""
+    from calib.board_hint import board_hint
+
+    hint = board_hint(_views(CHARUCO_SPEC), parse_board("checker:cols=5,rows=4,square=30"))
+    assert hint is not None and "ArUco markers of DICT_5X5_50 are in view" in hint and "ChArUco board" in hint
+
+
+@pytest.mark.parametrize("printed, given, fragments", [
+    (CHECKER_SPEC, "checker:cols=9,rows=7,square=30",
+     ["a chessboard of 8x6 inner corners is in view", "try --board checker:cols=8,rows=6,square=30"]),
+    (CHECKER_SPEC, "charuco:cols=9,rows=7,square=30,marker=22,dict=DICT_5X5_100",
+     ["a chessboard without markers is in view", "try --board checker:cols=8,rows=6,square=30"]),
+    ("charuco:cols=9,rows=6,square=30,marker=22,dict=DICT_5X5_100,legacy=1",
+     "charuco:cols=9,rows=6,square=30,marker=22,dict=DICT_5X5_100",
+     ["the board is found as --board charuco:cols=9,rows=6,square=30,marker=22,dict=DICT_5X5_100,legacy=1"]),
+], ids=["squares-counted", "checker-given-as-charuco", "legacy-pattern"])
+def test_error_names_the_board_in_view(printed, given, fragments, tmp_path, capsys):
+    """When no frame has the board given, the error says what the frames show and the --board that reads it
+    (the mistakes of real footage: squares counted for inner corners, the wrong kind of board, OpenCV's
+    legacy ChArUco pattern); frames of noise keep the general advice (test_error_no_board_in_any_frame)."""
+    write_images(tmp_path / "views", _views(printed))
+    code, _, err = run(["calibrate", str(tmp_path / "views"), "--board", given, "--out", str(tmp_path / "c.json"),
+                        "--no-progress"], capsys)
+    assert_one_line_error(code, err, "no board found in any of the 5 frames", *fragments)
+    assert not (tmp_path / "c.json").exists()
 
 
 def test_error_unreadable_video(tmp_path, capsys):
