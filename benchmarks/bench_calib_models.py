@@ -70,7 +70,7 @@ def evidence_of_case(case: Case, renderer: Renderer) -> dict | None:
         settings = CalibrateSettings(input=inp, board=SPEC, out=Path(tmp) / "cam.json", progress=False)
         board = _check_settings(settings)
         footage = open_footage(inp)
-        candidates, _dropped, _n = _detect_all(footage, BoardDetector(board, settings.min_corners), board, settings)
+        candidates, _dropped, _n, _ = _detect_all(footage, BoardDetector(board, settings.min_corners), board, settings)
         chosen, _ = select_views(candidates, footage.image_size, settings.max_views, settings.max_blur,
                                  settings.duplicate_px)
     if len(chosen) < options.min_views:
