@@ -74,7 +74,8 @@ def board_hint(grays: Sequence[np.ndarray], board: BoardSpec) -> str | None:
                         f"squares)")
             other = replace(board, legacy=not board.legacy)
             if _charuco_found(grays, other):
-                return f"the board is found as --board {other.text()} (OpenCV's {'legacy' if other.legacy else 'current'} pattern)"
+                pattern = "legacy" if other.legacy else "current"
+                return f"the board is found as --board {other.text()} (OpenCV's {pattern} pattern)"
             return (f"{len(ids)} markers of {board.dictionary} are in view but no board corners: check cols, rows, "
                     f"square and marker")
         seen = _markers_by_dictionary(grays)

@@ -3,7 +3,7 @@
     python scripts/make_demo_actor.py [--from ACTOR_DIR]
 
 ``capture demo`` must finish in minutes, so it ships a pretrained actor instead of training one
-(training takes about 13.5 minutes on 2 CPU cores with AMX, longer without). This script makes it
+(training takes about 8 minutes on 2 CPU cores with AMX, longer without). This script makes it
 the way a user would: ``capture actor train <tmp> --sample`` with the default preset (or takes an
 actor trained that way with ``--from``), then copies the package to ``capture/data/demo_actor/``.
 """

@@ -118,7 +118,8 @@ def test_warp_reduces_by_an_exact_factor(monkeypatch):
 
     calls = []
     resize = cv2.resize
-    monkeypatch.setattr(cv2, "resize", lambda a, dsize, **kw: calls.append((a.shape[:2], dsize)) or resize(a, dsize, **kw))
+    monkeypatch.setattr(cv2, "resize",
+                        lambda a, dsize, **kw: calls.append((a.shape[:2], dsize)) or resize(a, dsize, **kw))
     frame = np.zeros((720, 1280, 3), np.uint8)
     cv2.circle(frame, (641, 363), 90, (200, 120, 40), -1, lineType=cv2.LINE_AA)
     for crop in [Crop(640.3, 360.7, 301.0, 0.0), Crop(611.0, 333.0, 437.0, 17.0), Crop(30.0, 700.0, 380.0, -30.0),

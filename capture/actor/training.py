@@ -116,6 +116,9 @@ def _constraint_template_points(con: AnatomyConstraints, template: np.ndarray, f
     return np.einsum("mk,mkc->mc", con.barycentric, tri)
 
 
+#: The final weights are replaced by the best evaluated ones of the session when their error is this much higher.
+KEEP_BEST_MARGIN = 1.02
+
 #: How far towards the lip-parting shape the neutral is opened where the mirror matches points (0 = the neutral).
 MIRROR_MATCH_OPEN = 0.3
 #: Median distance (mm) of the reflected neutral from itself above which the mirrored shapes are flagged as rough.
@@ -319,6 +322,9 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     }
     if not settings.input_chart:  # a training without the chart keeps the fingerprint it had before charts
         del resolved["settings"]["input_chart"]
+    # How Adam's moments meet the closed-form solves changes the path, not the problem: a training begun
+    # before the setting existed resumes with it (actor.json records it).
+    del resolved["settings"]["keep_moments_at_solves"]
     fingerprint_no_mirror = _fingerprint(inputs, resolved)   # a training without mirrors keeps the fingerprint it had
     if options.mirror:                                         # before they existed, so it still resumes
         resolved["mirror"] = True
@@ -377,6 +383,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     last_ckpt = t0
     ev = None
     progress = progress or TrainingProgress(enabled=False)
+    best = None   # (mean mm, iteration, trainer.weights()) of the best evaluation of this session
     threads_before = torch.get_num_threads()
     if options.threads:
         torch.set_num_threads(options.threads)
@@ -391,6 +398,8 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                                        f"lower --lr or use --preset default")
                 if trainer.iteration % options.eval_every == 0 or trainer.iteration == settings.iterations:
                     ev = trainer.evaluate()
+                    if best is None or ev.mean_mm < best[0]:
+                        best = (ev.mean_mm, trainer.iteration, trainer.weights())
                     with open(log_path, "a") as fh:
                         fh.write(json.dumps({"iteration": trainer.iteration, "seconds": elapsed_before + time.perf_counter() - t0,
                                              "cpu_seconds": cpu_before + time.process_time() - cpu0,
@@ -408,6 +417,14 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     train_seconds = elapsed_before + time.perf_counter() - t0
     train_cpu_seconds = cpu_before + time.process_time() - cpu0
     ev = trainer.evaluate()
+    weights_of = trainer.iteration
+    if best is not None and ev.mean_mm > KEEP_BEST_MARGIN * best[0]:
+        # a late loss spike (Adam at the end of a short schedule) is not what the user gets
+        report(f"the last steps raised the training error to {ev.mean_mm:.4f} mm; the actor keeps the weights of "
+               f"iteration {best[1]} ({best[0]:.4f} mm)")
+        trainer.load_weights(best[2])
+        weights_of = best[1]
+        ev = trainer.evaluate()
 
     R = rot6d_to_matrix(trainer.jaw_rot6d.detach()).cpu().numpy()
     t = trainer.jaw_t.detach().cpu().numpy()
@@ -425,6 +442,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                    "jaw": str(options.jaw) if options.jaw else None, "bones_estimated": extras["bones_estimated"]},
         "model": config.to_dict(),
         "training": {"preset": options.preset, "settings": settings.to_dict(), "iterations": trainer.iteration,
+                     "weights_of_iteration": weights_of,
                      "train_seconds": train_seconds, "train_cpu_seconds": train_cpu_seconds,
                      "prepare_seconds": prep_seconds, "device": options.device,
                      "torch_threads": threads_used, "hidden_matmul": trainer.hidden_matmul, "input_chart": chart,

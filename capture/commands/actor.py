@@ -200,4 +200,6 @@ def _show_metadata(actor, meta: dict, console: Console) -> None:
                   f"lr {s['lr']}, {tr['train_seconds'] / 60:.1f} min on {tr['device']}"
                   + (f" ({tr['train_cpu_seconds'] / 60:.1f} min CPU, {tr.get('torch_threads', '?')} thread(s))"
                      if "train_cpu_seconds" in tr else "")
-                  + (", bfloat16 hidden products" if tr.get("hidden_matmul") == "bf16" else ""))
+                  + (", bfloat16 hidden products" if tr.get("hidden_matmul") == "bf16" else "")
+                  + (f"; weights of iteration {tr['weights_of_iteration']} (the best evaluated)"
+                     if tr.get("weights_of_iteration", tr["iterations"]) != tr["iterations"] else ""))
