@@ -142,8 +142,7 @@ class TrainSettings:
 
 PRESETS: dict[str, TrainSettings] = {
     "default": TrainSettings(iterations=2000, lr_final_fraction=0.3, hidden_lr_scale=3.0, symmetry_points=2048,
-                             hidden_matmul="auto",
-                             input_chart=0.3, keep_moments_at_solves=True),
+                             hidden_matmul="auto", input_chart=0.3, keep_moments_at_solves=True),
     "fast": TrainSettings(iterations=2000, points_per_step=2048, importance=0.5, importance_reweight=False,
                           expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True,
                           freeze_solved_layers=True, hidden_lr_scale=3.0, symmetry_points=256, hidden_matmul="auto",

@@ -322,8 +322,8 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     }
     if not settings.input_chart:  # a training without the chart keeps the fingerprint it had before charts
         del resolved["settings"]["input_chart"]
-    # How Adam's moments meet the closed-form solves changes the path, not the problem: a training begun
-    # before the setting existed resumes with it (actor.json records it).
+    # How Adam's moments meet the closed-form solves changes the path, not the problem: not part of what a
+    # resumed training must match (actor.json records it).
     del resolved["settings"]["keep_moments_at_solves"]
     fingerprint_no_mirror = _fingerprint(inputs, resolved)   # a training without mirrors keeps the fingerprint it had
     if options.mirror:                                         # before they existed, so it still resumes
