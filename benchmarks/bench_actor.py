@@ -127,7 +127,8 @@ def report(preset: str, kind: str, stats: dict, full_iterations: int | None = No
     print(f"time: train {tr['train_seconds']:.0f} s wall, {cpu:.0f} s CPU ({1000 * cpu / max(tr['iterations'], 1):.0f} "
           f"ms CPU/iteration) with {stats['threads']} thread(s); prepare {tr['prepare_seconds']:.1f} s; process "
           f"wall {stats['wall_s']:.0f} s, CPU {stats['cpu_s']:.0f} s; load average {stats['load_before'][0]:.1f} -> "
-          f"{stats['load_after'][0]:.1f}; peak memory {stats['peak_mb']:.0f} MB")
+          f"{stats['load_after'][0]:.1f}; peak memory {stats['peak_mb']:.0f} MB; CPU "
+          f"{tr.get('machine', {}).get('cpu')}")
     if full_iterations and full_iterations > tr["iterations"]:
         print(f"EXTRAPOLATED: {full_iterations} iterations would take about {per_it * full_iterations / 60:.0f} min wall "
               f"at this load, {cpu / max(tr['iterations'], 1) * full_iterations / 60:.0f} min CPU "

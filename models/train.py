@@ -9,17 +9,20 @@ Presets (:data:`PRESETS`):
 * ``paper``: the paper's settings - SIREN omega_0 = 30 in every layer, width 256, Adam lr 2e-3
   held constant for 1e4 iterations, every point in every step.
 * ``default``: the project's - omega_0 = 30 on the first layer only (stable at lr 2e-3, see
-  :mod:`models.siren`), a cosine learning-rate decay to 1 % of the start (a constant rate keeps
-  the error spiky), 3,000 steps on every point, and a closed-form solve of the linear output
-  layers of E, B and D every 100 steps (``expression_solve_every``): with everything else fixed
-  the skin loss is quadratic in E's output layer, so its least-squares optimum is one small
-  linear solve (width x width) instead of thousands of Adam steps. The hidden sine layers step at
-  3x the learning rate of the output layers (``hidden_lr_scale``, issue 13: on the sample actor
-  0.061 mm after 3,000 steps against 0.086 mm without it). The symmetry term (weight 1e-4) sees
-  the mirror images of 2,048 of the points, a new uniform draw each step (``symmetry_points``: a
-  step costs 15 % less). Where bfloat16 products are measured 2x faster than float32 (CPUs with
-  AMX, GPUs) the hidden layers multiply in bfloat16 for the first 85 % of the steps
-  (``hidden_matmul="auto"``, :mod:`models.precision`).
+  :mod:`models.siren`), 2,300 steps on every template point with a cosine learning-rate decay to
+  30 % of the start (``lr_final_fraction``), and a closed-form solve of the linear output layers
+  of E, B and D every 100 steps (``expression_solve_every``): with everything else fixed the skin
+  loss is quadratic in E's output layer, so its least-squares optimum is one small linear solve
+  (width x width) instead of thousands of Adam steps. Adam keeps its moments of a solved layer
+  (``keep_moments_at_solves``). The hidden sine layers step at 3x the learning rate of the output
+  layers (``hidden_lr_scale``, issue 13: on the sample actor 0.061 mm after 3,000 steps against
+  0.086 mm without it). The symmetry term (weight 1e-4) sees the mirror images of 2,048 of the
+  points, and the anatomy terms 2,048 of the constrained points, a new uniform draw each step
+  (``symmetry_points``: a step costs 15 % less; ``constraint_points_per_step``: 16 % less with
+  estimated bones, which constrain 4,859 of the sample's points). Where bfloat16 products are
+  measured 2x faster than float32 (CPUs with AMX, GPUs) the hidden layers multiply
+  in bfloat16 for the first 85 % of the steps (``hidden_matmul="auto"``, :mod:`models.precision`).
+  The networks read the template through the input chart (``input_chart``).
 * ``fast``: the same five networks and losses in 2,000 cheaper steps (issue 13; it ends at a
   higher error than ``default`` in a sixth of its CPU time, BENCHMARKS.md):
   E is solved before the first step (the expression field starts at the fit of the shape deltas)
@@ -72,6 +75,12 @@ class TrainSettings:
     points_per_step: int = 0
     """Template points sampled per step; 0 = all points every step. The constrained points are
     subsampled in the same proportion."""
+    constraint_points_per_step: int = 0
+    """Of a step on every template point (``points_per_step`` 0), how many of the constrained points carry
+    the anatomy terms: a new uniform draw each step; 0 = all of them. The terms are means over the
+    points, so a draw keeps them unbiased, and the closed-form solves still use every point. With
+    estimated bones there are 2.5x as many constrained points as with fitted ones (the sample: 4,859
+    against 1,979), and B, D and N on them made a step 44 % dearer (issue 13)."""
     importance: float = 0.0
     """Fraction of the sampled points drawn in proportion to the current per-vertex error (known
     from the last closed-form solve), the rest uniformly; 0 = uniform sampling."""
@@ -141,8 +150,9 @@ class TrainSettings:
 
 
 PRESETS: dict[str, TrainSettings] = {
-    "default": TrainSettings(iterations=2000, lr_final_fraction=0.3, hidden_lr_scale=3.0, symmetry_points=2048,
-                             hidden_matmul="auto", input_chart=0.3, keep_moments_at_solves=True),
+    "default": TrainSettings(iterations=2300, lr_final_fraction=0.3, hidden_lr_scale=3.0, symmetry_points=2048,
+                             hidden_matmul="auto", input_chart=0.3, keep_moments_at_solves=True,
+                             constraint_points_per_step=2048),
     "fast": TrainSettings(iterations=2000, points_per_step=2048, importance=0.5, importance_reweight=False,
                           expression_solve_every=10, anatomy_solve_every=50, solve_at_start=True,
                           freeze_solved_layers=True, hidden_lr_scale=3.0, symmetry_points=256, hidden_matmul="auto",
@@ -327,10 +337,14 @@ class ActorTrainer:
         p = s.points_per_step
         g = self.generator
         if p <= 0 or p >= n:
+            m = self.data.constraint_points.shape[0]
+            con = None
+            if 0 < s.constraint_points_per_step < m:
+                con = torch.randperm(m, generator=g)[:s.constraint_points_per_step].to(self.device)
+            sym = None
             if 0 < s.symmetry_points < n:
-                sym = torch.randperm(n, generator=g)[:s.symmetry_points]
-                return Sample(None, None, None, sym.to(self.device))
-            return None
+                sym = torch.randperm(n, generator=g)[:s.symmetry_points].to(self.device)
+            return None if con is None and sym is None else Sample(None, None, con, sym)
         weights = None
         if s.importance > 0 and self.vertex_error is not None:
             err = self.vertex_error.double().cpu()

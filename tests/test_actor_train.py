@@ -80,6 +80,8 @@ def test_show_and_list(trained, capsys, monkeypatch):
     # the training time (wall and CPU) stays in the report (issue 13)
     flat = " ".join(out.split())  # the console wraps long lines
     assert re.search(r"training: preset \w+, \d+ iterations, .* [\d.]+ min on cpu \([\d.]+ min CPU", flat), out
+    cpu = json.loads((actor_dir / "actor.json").read_text())["training"]["machine"]["cpu"]
+    assert cpu and f"thread(s) of {' '.join(cpu.split())})" in flat   # and what it was measured on
     monkeypatch.setenv("CAPTURE_ACTORS", str(actor_dir.parent))
     assert main(["actor", "list"]) == 0
     assert "tiny" in capsys.readouterr().out

@@ -12,7 +12,7 @@ import torch
 
 from capture.actor.training import TrainingProgress, progress_line, resolve_settings, time_left
 from models.losses import anatomy_losses, skinning_weight_loss
-from models.train import ActorTrainer, model_config_for
+from models.train import ActorTrainer, Sample, model_config_for
 from tests.tiny_actor import tiny_shapes, tiny_training_data
 
 
@@ -83,6 +83,26 @@ def test_losses_match_the_all_networks_reference(trainer):
         for name, value in ref.items():
             torch.testing.assert_close(fast[name], value, rtol=1e-4, atol=1e-9, msg=name)
         assert fast["symmetry"] != full.losses()["symmetry"]  # not all points
+        # A step on every point with the anatomy terms on a uniform draw of the constrained points.
+        m = len(trainer.data.constraint_points)
+        drawn = ActorTrainer.__new__(ActorTrainer)
+        drawn.__dict__.update(trainer.__dict__, settings=replace(trainer.settings, points_per_step=0,
+                                                                 constraint_points_per_step=m // 4))
+        sample = drawn._sample()
+        ci = sample.constraint_index
+        assert sample.index is None and len(ci) == m // 4 == len(set(ci.tolist()))
+        fast = drawn.losses(sample)
+        ref = _reference_terms(drawn, con_index=ci, symmetry=sample.symmetry_index)
+        for name, value in ref.items():
+            torch.testing.assert_close(fast[name], value, rtol=1e-4, atol=1e-9, msg=name)
+        # Means over the points: on the parts of a partition, weighted by their sizes, they average to the
+        # terms on every point.
+        every = drawn.losses(Sample(None, None, None, sample.symmetry_index))
+        parts = torch.tensor_split(torch.randperm(m), 4)
+        for name in ("bone", "thickness", "normal"):
+            mean = sum(len(part) * drawn.losses(Sample(None, None, part, sample.symmetry_index))[name]
+                       for part in parts) / m
+            torch.testing.assert_close(mean, every[name], rtol=1e-4, atol=1e-9, msg=name)
 
 
 @pytest.fixture(scope="module")

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from benchmarks.gbs import fit_gbs, fit_gbs_sequence
 from benchmarks.heldout import DEFAULT_ICT, EXCLUDED, JAW_RANGES
 from benchmarks.takes import accuracy
+from capture.io.machine import machine
 
 needs_ict = pytest.mark.skipif(not DEFAULT_ICT.is_file(), reason=f"ICT FaceKit arrays not at {DEFAULT_ICT}")
 
@@ -231,6 +232,7 @@ def test_bench_actor_quick(tmp_path):
         tr, q = r["meta"]["training"], r["meta"]["quality"]
         assert tr["iterations"] == (20 if r["preset"] == "fast" else 5) and tr["torch_threads"] == 1
         assert 0 < tr["train_cpu_seconds"] <= r["cpu_s"] and r["peak_mb"] > 0
+        assert tr["machine"] == machine()   # the timing says what it was measured on
         # the sample's 20 scans and the mirrors of its 5 one-sided expressions (capture actor train's default)
         assert len(r["meta"]["source"]["mirrored_shapes"]) == 5
         assert np.isfinite(q["mean_mm"]) and len(q["per_shape"]) == 25

@@ -21,6 +21,7 @@ import pytest
 import trimesh
 
 from capture.cli import main
+from capture.io.machine import machine
 from capture.run.inputs import parse_frame_range, resolve_camera
 from tests.tiny_actor import synth_tiny_take, train_tiny_actor
 
@@ -97,6 +98,7 @@ def test_outputs_open_in_their_readers(take, full_run):
     assert len(rms) == N_FRAMES and all(r is not None and 0 <= r < 50 for r in rms)
     assert report["camera"]["is_default"] is False and report["camera"]["source"].endswith("camera.json")
     assert {"python", "torch", "onnxruntime", "opencv", "capture"} <= set(report["versions"])
+    assert report["machine"] == machine()
     assert report["settings"]["fit_settings"]["iterations"] == 20
     assert {s["stage"] for s in report["stages"]} == {"detect", "fit", "export"}
     assert json.loads((out / "run.json").read_text())["status"] == "done"

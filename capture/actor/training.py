@@ -30,6 +30,7 @@ import capture
 from capture.actor.package import TRAINING_DIR, actor_dir, is_actor, remove_actor, save_actor
 from capture.io.atomic import atomic_path, write_bytes, write_json
 from capture.io.errors import CaptureError, read_text_file, Interrupted
+from capture.io.machine import machine
 from capture.io.signals import sigterm_as_interrupt
 from capture.io.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
 from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
@@ -322,9 +323,10 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     }
     if not settings.input_chart:  # a training without the chart keeps the fingerprint it had before charts
         del resolved["settings"]["input_chart"]
-    # How Adam's moments meet the closed-form solves changes the path, not the problem: not part of what a
-    # resumed training must match (actor.json records it).
-    del resolved["settings"]["keep_moments_at_solves"]
+    # How Adam's moments meet the closed-form solves, and how many constrained points a step draws, change the
+    # path, not the problem: not part of what a resumed training must match (actor.json records them).
+    for path_only in ("keep_moments_at_solves", "constraint_points_per_step"):
+        del resolved["settings"][path_only]
     fingerprint_no_mirror = _fingerprint(inputs, resolved)   # a training without mirrors keeps the fingerprint it had
     if options.mirror:                                         # before they existed, so it still resumes
         resolved["mirror"] = True
@@ -446,7 +448,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                      "train_seconds": train_seconds, "train_cpu_seconds": train_cpu_seconds,
                      "prepare_seconds": prep_seconds, "device": options.device,
                      "torch_threads": threads_used, "hidden_matmul": trainer.hidden_matmul, "input_chart": chart,
-                     "load_average": list(_load_average())},
+                     "load_average": list(_load_average()), "machine": machine()},
         "quality": _evaluation_metadata(ev, shapes.names),
         "anatomy_constraints": {"count": int(len(con.thickness)), "coverage": float(con.coverage),
                                 "candidates": int(con.n_candidates),

@@ -198,7 +198,8 @@ def _show_metadata(actor, meta: dict, console: Console) -> None:
     s = tr["settings"]
     console.print(f"training: preset {tr['preset']}, {tr['iterations']} iterations, width {s['width']}, depth {s['depth']}, "
                   f"lr {s['lr']}, {tr['train_seconds'] / 60:.1f} min on {tr['device']}"
-                  + (f" ({tr['train_cpu_seconds'] / 60:.1f} min CPU, {tr.get('torch_threads', '?')} thread(s))"
+                  + (f" ({tr['train_cpu_seconds'] / 60:.1f} min CPU, {tr.get('torch_threads', '?')} thread(s)"
+                     + (f" of {tr['machine']['cpu']}" if (tr.get("machine") or {}).get("cpu") else "") + ")"
                      if "train_cpu_seconds" in tr else "")
                   + (", bfloat16 hidden products" if tr.get("hidden_matmul") == "bf16" else "")
                   + (f"; weights of iteration {tr['weights_of_iteration']} (the best evaluated)"

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from capture.io.errors import CaptureError, Interrupted
+from capture.io.machine import machine
 from capture.run.inputs import RunConfig, resolve_inputs
 from capture.run.report import error_stats, frame_table, versions, write_report
 from capture.run.stages import LANDMARKS, detect_stage, export_stage, fit_frames, fit_stage, iter_fits
@@ -341,7 +342,7 @@ def fits_key(out: Path, inputs, track) -> str:
 
 def base_report(command: str, out: Path, settings: dict, log: list[dict], t_start: float) -> dict:
     return {"format": "capture-report", "version": 1, "command": command, "out_dir": str(out),
-            "versions": versions(), "settings": settings, "stages": log,
+            "versions": versions(), "machine": machine(), "settings": settings, "stages": log,
             "seconds_total": time.perf_counter() - t_start}
 
 
