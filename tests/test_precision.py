@@ -10,6 +10,7 @@ import pytest
 import torch
 
 import models.precision as precision
+import models.siren as siren
 from capture.actor.training import resolve_settings
 from models.precision import hidden_layers, hidden_matmul_dtype, resolve_hidden_matmul
 from models.siren import SineLayer, Siren
@@ -60,7 +61,11 @@ def test_bf16_gradients_point_where_float32_gradients_do():
         assert p.dtype == torch.float32 and p.grad.dtype == torch.float32
 
 
-def test_hidden_layer_in_bf16_equals_a_readable_reference():
+@pytest.mark.parametrize("onednn", ["probed", "not rounding"])
+def test_hidden_layer_in_bf16_equals_a_readable_reference(onednn, monkeypatch):
+    """On every CPU: oneDNN's bfloat16 mode where it rounds (AMX), else products of bfloat16 copies."""
+    if onednn == "not rounding":
+        monkeypatch.setattr(siren, "_ONEDNN_ROUNDS", False)
     torch.manual_seed(1)
     layer = SineLayer(32, 16, omega_0=30.0)
     layer.matmul_dtype = torch.bfloat16

@@ -59,6 +59,11 @@ def _posed(actor_dir: Path, r6, jt, co) -> np.ndarray:
         return act.model.shape(act.model(v), r6, jt, co).numpy().astype(np.float64)
 
 
+OBJ_UNIT = 1e-4 + 1e-9
+"""OBJ files hold 4 decimals: the same vertex reached by two float paths (a run, its replay) can round to
+neighbouring values, one unit (0.1 um) apart; seen on one CPU and not on another."""
+
+
 def _meshes(folder: Path) -> np.ndarray:
     return np.stack([trimesh.load(p, process=False, maintain_order=True).vertices
                      for p in sorted(folder.glob("frame_*.obj"))])
@@ -151,7 +156,7 @@ def test_retarget_onto_itself_reproduces_the_run(actors, fitted, tmp_path):
     run = fitted[0]
     out = tmp_path / "on_a"
     assert main(["retarget", str(run), "--to", str(a), "--out", str(out), "--formats", "obj", "--no-progress"]) == 0
-    assert np.abs(_meshes(out / "meshes") - _meshes(run / "meshes")).max() < 1e-4
+    assert np.abs(_meshes(out / "meshes") - _meshes(run / "meshes")).max() <= OBJ_UNIT
 
 
 def test_retarget_a_video_run_with_all_its_outputs(actors, tmp_path):
@@ -176,7 +181,7 @@ def test_retarget_a_video_run_with_all_its_outputs(actors, tmp_path):
     # Windows [0, 5) and [4, 8) overlap by one frame: played on A itself, the blend reproduces the run.
     assert main(["retarget", str(run), "--to", str(a), "--out", str(tmp_path / "on_a"), "--formats", "obj",
                  "--no-progress"]) == 0
-    assert np.abs(_meshes(tmp_path / "on_a" / "meshes") - _meshes(run / "meshes")).max() < 1e-4
+    assert np.abs(_meshes(tmp_path / "on_a" / "meshes") - _meshes(run / "meshes")).max() <= OBJ_UNIT
 
 
 def _error(capsys) -> str:
