@@ -8,7 +8,9 @@ mantissa) perturbs a pre-activation by about 0.2 % of its size; on the sample ac
 2-3 % of error at an equal number of steps, so the trainer uses it for the first part of a training
 only and finishes, solves and evaluates in float32 (:class:`models.train.TrainSettings`
 ``hidden_matmul``). On the CPU the products run through oneDNN with float32 tensors in and out and
-bfloat16 inside the kernel (:class:`models.siren.SineLayer`), elsewhere on bfloat16 copies.
+bfloat16 inside the kernel (:class:`models.siren.SineLayer`) where that mode really rounds (AMX; probed by
+:func:`models.siren.onednn_bf16_rounds`: on an AMD EPYC with AVX-512 BF16 it stayed float32-accurate and
+only 1.2-1.4x faster), elsewhere on bfloat16 copies (there 1.9x faster than float32 for the forward product).
 
 Whether bfloat16 is faster is measured, not guessed from CPU flags: without AMX or AVX-512 BF16,
 oneDNN emulates it and it is slower than float32.
