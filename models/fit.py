@@ -117,7 +117,9 @@ def fit_sequence(actor: ActorAtPoints, obs: Observations, settings: FitSettings,
     field = settings.field_centres > 0 and settings.field_iterations > 0
     if field:
         n_lm += solve_field(fit, actor, obs, settings.field_iterations)
-    if settings.lm_polish_iterations > 0:
+    # the polish solves the base again after what moved it: with no Adam iteration and no field it would
+    # start at the first solve's own minimum
+    if settings.lm_polish_iterations > 0 and (len(history) > 0 or field or settings.lm_iterations == 0):
         n_lm += solve_base(fit, actor, obs, settings.lm_polish_iterations).iterations
         if field:
             n_lm += solve_field(fit, actor, obs, settings.field_iterations)

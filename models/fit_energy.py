@@ -32,6 +32,17 @@ def fitting_losses(fit: SequenceFit, actor: ActorAtPoints, obs: Observations) ->
     return terms
 
 
+def squared_norm(x: torch.Tensor) -> torch.Tensor:
+    """``|x|^2`` over a short last axis (2D or 3D residuals): ``(*, k) -> (*)``. The same as
+    ``x.square().sum(-1)``, which torch's CPU reduction over an axis of 2 or 3 makes about 10x slower
+    (250 us against 20 us for 30 x 468 pixel residuals in float64)."""
+    parts = x.unbind(-1)
+    out = parts[0] * parts[0]
+    for p in parts[1:]:
+        out = out.addcmul(p, p)
+    return out
+
+
 def robust_2d(r2: torch.Tensor, robust_px: float) -> torch.Tensor:
     """The 2D loss of squared pixel distances ``r2``: pseudo-Huber with scale ``robust_px`` (0: ``r2``)."""
     if robust_px <= 0:
@@ -44,7 +55,7 @@ def irls_sqrt_weights(r: torch.Tensor, w2d: torch.Tensor, robust_px: float) -> t
     """``(J, P, 1)`` square roots of the Gauss-Newton weights of 2D residuals ``r (J, P, 2)`` px with
     confidences ``w2d (J, P)``: the pseudo-Huber loss of :func:`robust_2d` as iteratively reweighted
     least squares (weight ``1 / sqrt(1 + |r|^2 / c^2)``), normalised like the 2D term's weighted mean."""
-    drho = torch.ones_like(r[..., 0]) if robust_px <= 0 else 1 / torch.sqrt(1 + r.square().sum(-1) / robust_px ** 2)
+    drho = torch.ones_like(r[..., 0]) if robust_px <= 0 else torch.rsqrt(1 + squared_norm(r) / robust_px ** 2)
     return torch.sqrt(w2d * drho / w2d.sum().clamp_min(1e-12))[..., None]
 
 
@@ -71,10 +82,14 @@ def robust_2d_linearised(r: torch.Tensor, Jp: torch.Tensor, w2d: torch.Tensor, r
     sw = irls_sqrt_weights(r, w2d, robust_px)                                         # (J, P, 1)
     if robust_px <= 0 or not exact:
         return sw[..., None] * Jp, sw * r
-    keep = torch.rsqrt(1 + r.square().sum(-1, keepdim=True) / robust_px ** 2)        # 1 - alpha (J, P, 1)
-    u = r / r.norm(dim=-1, keepdim=True).clamp_min(1e-300)                             # r^ (0 where r = 0)
-    AJ = Jp - ((1 - keep) * u)[..., None] * (u[..., None, :] @ Jp)                    # (I - alpha r^ r^T) Jp
-    return sw[..., None] * AJ, sw * r / keep
+    r2 = squared_norm(r)[..., None]                                                    # (J, P, 1)
+    keep = torch.rsqrt(1 + r2 / robust_px ** 2)                                       # 1 - alpha
+    # (I - alpha r^ r^T) Jp = Jp - r (alpha / |r|^2) (r^T Jp), row by row (no (J, P, 2, m) outer product)
+    J0, J1 = Jp.unbind(-2)                                                            # (J, P, m)
+    rJ = r[..., 0:1] * J0 + r[..., 1:2] * J1                                          # r^T Jp
+    ar = (sw * (1 - keep) / r2.clamp_min(1e-300)) * r                                # 0 where r = 0
+    D = torch.stack([sw * J0 - ar[..., 0:1] * rJ, sw * J1 - ar[..., 1:2] * rJ], -2)
+    return D, sw * r / keep
 
 
 def observation_weights(obs: Observations, dtype: torch.dtype) -> torch.Tensor:
@@ -111,10 +126,10 @@ def energy_terms(actor: ActorAtPoints, obs: Observations, s: FitSettings, pose: 
     if obs.points2d is not None:
         uv = project_points(face, obs.K, obs.dist)
         weight = observation_weights(obs, face.dtype)
-        r2 = (uv - torch.nan_to_num(obs.points2d)).square().sum(-1)
+        r2 = squared_norm(uv - torch.nan_to_num(obs.points2d))
         terms["2d"] = (weight * robust_2d(r2, s.robust_px)).sum() / weight.sum().clamp_min(1e-12)
     if obs.points3d is not None:
-        terms["3d"] = ((face - obs.points3d) / s.length_unit_mm).square().sum(-1).mean()
+        terms["3d"] = squared_norm((face - obs.points3d) / s.length_unit_mm).mean()
     terms["coeff"] = s.coeff_weight * w.square().mean()
     J = w.shape[0]
     if s.pose_accel_weight > 0 and J > 2:

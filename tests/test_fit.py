@@ -255,11 +255,18 @@ def test_lm_gauss_newton_matrix_is_jt_j_of_the_residuals():
     from models.fit_lm import _Problem
 
     s = replace(LM_SETTINGS, robust_px=0.0)
-    for n_frames in (4, 7):          # 7: the pose-acceleration band fills blocks two frames apart
+    # 7 frames: the pose-acceleration band fills blocks two frames apart; F_W at its zero start: the
+    # 2D default's path, without F_W's terms
+    for n_frames, zero_fw in ((4, False), (7, False), (7, True)):
         actor, obs = _lm_problem(P=40)
         obs = Observations(points2d=obs.points2d[:1].expand(n_frames, -1, -1).clone(),
                            weights=obs.weights[:1].expand(n_frames, -1).clone(), K=K, dist=DIST)
         fit = _perturbed_fit(s, J=n_frames)
+        if zero_fw:
+            with torch.no_grad():
+                fit.F_W.net[-1].weight.zero_()
+                fit.F_W.net[-1].bias.zero_()
+            assert fit.net_is_zero()
         residuals, _ = _lm_residuals(fit, actor, obs, s)
         n = 12 + fit.coeff0.shape[1]
         d0 = torch.zeros(n_frames * n, dtype=torch.float64)
@@ -270,6 +277,48 @@ def test_lm_gauss_newton_matrix_is_jt_j_of_the_residuals():
         # float32 Jacobian planes: relative rounding ~1e-7 of the largest entries
         torch.testing.assert_close(dense, ref, rtol=0, atol=1e-5 * float(ref.abs().max()))
         torch.testing.assert_close(g, Jm.T @ residuals(d0), rtol=1e-8, atol=1e-12)
+
+
+def test_lm_ends_where_the_jaw_and_its_target_agree():
+    """With the jaw prior pointed at the jaw the coefficients imply, the solve moves that target after
+    every step, so it ends at a fixed point: a second solve from its result moves nothing (while the
+    target was held for a whole solve, a second solve moved the jaw by the change of its target)."""
+    from models.fit_lm import solve_base
+
+    actor, obs = _lm_problem(P=40)
+    E = actor.n_expressions
+    g = torch.Generator().manual_seed(3)
+    actor.jaw_rotvec = 0.2 * torch.randn(E, 3, generator=g, dtype=torch.float64)   # each shape's jaw
+    actor.jaw_shift = 2.0 * torch.randn(E, 3, generator=g, dtype=torch.float64)
+    s = replace(LM_SETTINGS, jaw_prior_target="expressions", jaw_prior_weight=1.0)
+    fit = _perturbed_fit(s)
+    first = solve_base(fit, actor, obs, iterations=50, tol=1e-12)
+    assert first.energies[-1] < first.energies[0]
+    before = [x.clone() for x in (fit.jaw_R0, fit.jaw_t0, fit.coeff0)]
+    second = solve_base(fit, actor, obs, iterations=50, tol=1e-12)
+    assert second.energies[-1] == pytest.approx(second.energies[0], rel=1e-9)
+    for a, b in zip(before, (fit.jaw_R0, fit.jaw_t0, fit.coeff0)):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+
+
+def test_polish_runs_only_after_what_moved_the_base():
+    """The second Levenberg-Marquardt solve (``lm_polish_iterations``) follows Adam iterations; right after
+    the first solve (2D, no Adam: the default) it is skipped, and the fit is that first solve's."""
+    from models.fit import fit_sequence
+    from models.fit_lm import solve_base
+
+    actor, obs = _lm_problem(P=40)
+    s = replace(LM_SETTINGS, lm_iterations=10, lm_polish_iterations=10, adam_on_landmarks=False, iterations=3)
+    R0 = torch.eye(3, dtype=torch.float64).expand(4, 3, 3).clone()
+    t0 = torch.tensor([0.0, 0.0, 600.0], dtype=torch.float64).expand(4, 3).clone()
+    res = fit_sequence(actor, obs, s, R0, t0)
+    fit = SequenceFit(4, actor.n_expressions, s, R0, t0)
+    alone = solve_base(fit, actor, obs, 10)
+    assert res.lm_iterations == alone.iterations and not res.losses
+    torch.testing.assert_close(res.fit.coeff0, fit.coeff0, rtol=0, atol=0)
+    torch.testing.assert_close(res.fit.head_t0, fit.head_t0, rtol=0, atol=0)
+    adam = fit_sequence(actor, obs, replace(s, adam_on_landmarks=True), R0, t0)
+    assert len(adam.losses) == 3 and adam.lm_iterations > alone.iterations
 
 
 def test_lm_converges_in_a_few_iterations_and_handles_3d():
