@@ -33,6 +33,29 @@ def test_reader_reports_count_fps_size():
         assert seq[0].dtype == np.uint8 and seq[0].shape == (288, 360, 3)
 
 
+@needs_grid
+def test_frames_decoded_into_a_pool_are_the_frames():
+    """Frames decoded into a FramePool's buffers equal the freshly allocated ones, and the buffers given
+    back are written into again (the pool then allocates nothing: every later frame is one of them)."""
+    from capture.io.video import FramePool
+
+    with open_video(CLIPS[0]) as r:
+        ref = {i: f.copy() for i, f in r.frames(range(20))}
+    pool, given = FramePool(), []
+    with open_video(CLIPS[0]) as r:
+        for k in range(0, 20, 5):                    # groups of 5 frames, given back after use
+            group = dict(r.frames(range(k, k + 5), pool))
+            for i, f in group.items():
+                np.testing.assert_array_equal(f, ref[i])
+                if k:
+                    assert any(np.shares_memory(f, b) for b in given), i
+            given = list(group.values())
+            pool.give(given)
+            assert len(pool) == 5
+    pool.give([np.zeros((4, 4, 3), np.uint8)[:, ::2]])   # not contiguous: never decoded into
+    assert len(pool) == 5
+
+
 def test_reader_errors(tmp_path):
     with pytest.raises(CaptureError, match="does not exist"):
         VideoReader(tmp_path / "none.mp4")

@@ -28,7 +28,7 @@ import numpy as np
 from capture.io.atomic import atomic_path, write_json
 from capture.detector.runtime import Detector, FrameLandmarks, TrackState, Lane
 from capture.io.errors import CaptureError
-from capture.io.video import VideoReader, video_identity
+from capture.io.video import FramePool, VideoReader, video_identity
 
 CACHE_FORMAT = 1
 MEMORY_BUDGET_BYTES = 1 << 30   # decoded frames held at once (limits how many segments run side by side)
@@ -239,11 +239,12 @@ def detect_video(video_path: str | Path, detector: Detector, cache_dir: str | Pa
         lanes_max = max(1, min(lanes_max, MEMORY_BUDGET_BYTES // max(1, frame_bytes * seg)))
         bar = _Progress(progress and todo > 0, todo, f"detect {detector.name}")
         detected = 0
+        pool = FramePool()     # the group's frames are decoded into the previous group's buffers
         try:
             for g in range(0, len(missing), lanes_max):
                 group = missing[g:g + lanes_max]
                 idx = [i for s in group for i in range(s, s + seg_len[s])]
-                buf = dict(reader.frames(idx))
+                buf = dict(reader.frames(idx, pool))
                 lanes = []
                 for s in group:
                     ids = [i for i in range(s, s + seg_len[s]) if i in buf]
@@ -256,6 +257,7 @@ def detect_video(video_path: str | Path, detector: Detector, cache_dir: str | Pa
                     shown[0] = n
 
                 detector.run_lanes(lanes, q, on_step=step, batch_size=lanes_max)
+                pool.give(buf.values())
                 del buf
                 for s, lane in zip(group, lanes):
                     done[s] = lane.results

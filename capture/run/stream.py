@@ -20,8 +20,9 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
 
 Queues hold at most :data:`QUEUE_FRAMES` frames; the decoder works at most one group of detection
 segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector and frames are
-allocated off the heap (:mod:`capture.io.heap`), so memory stays flat in the take's length (about
-1.1 GB peak at 1920x1080, ``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
+decoded into buffers that the detector gives back (:class:`capture.io.video.FramePool`; other large
+blocks are allocated off the heap, :mod:`capture.io.heap`), so memory stays flat in the take's length
+(``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
 event: an error or an interrupt in any stage stops all of them (a fit window being solved finishes
 first, and is kept), and the error is raised in the main thread (where SIGTERM and Ctrl-C arrive; the
 fit process ignores them and stops when the parent tells it).
@@ -261,7 +262,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     from capture.export.overlay_draw import confident_rms
     from capture.export.report_html import SeriesCollector, WorstFrameImages
     from capture.fit.process import FitStopped, FitWorker
-    from capture.io.video import VideoReader
+    from capture.io.video import FramePool, VideoReader
     from capture.run.stages import DONE_JSON, EXPORT_JSON, FIT_CHUNK, LANDMARKS, fit_dir_for, fit_key, windowed_fit
 
     cfg = inputs.config
@@ -291,6 +292,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     stage_dir = out / "fit" / f"stream-{digest(stream_key)[:16]}"
     stage_dir.mkdir(parents=True, exist_ok=True)
 
+    pool = FramePool()               # decoded frames' buffers, given back after detection: no page faults per frame
+
     def decode():
         background_thread()          # it runs ahead of the fit, which sets the pace (capture.io.priority)
         with VideoReader(cfg.video) as reader:
@@ -301,7 +304,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                     time.sleep(0.005)
                 t0 = time.perf_counter()
                 idx = [i for s in group for i in range(s, s + plan.seg_len[s])]
-                buf = dict(reader.frames(idx))
+                buf = dict(reader.frames(idx, pool))
                 clocks["decode"].busy += time.perf_counter() - t0
                 decoded.put((group, buf))
         decoded.put(_END)
@@ -322,6 +325,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                         ids = [i for i in range(g, g + plan.seg_len[g]) if i in buf]
                         lanes.append(Lane(ids, [buf[i] for i in ids], TrackState()))
                     det.run_lanes(lanes, q, batch_size=len(group))
+                    pool.give(buf.values())     # the detector keeps no frame: decoded into again
                     del buf
                     for lane in lanes:
                         lane.frames = []        # let go of the decoded frames before waiting for the next group
