@@ -106,15 +106,30 @@ class _Problem:
         self.n = 12 + self.E
         self._H = None
         self.actor = actor
-        self.retarget()
+        self._point_jaw_prior()
 
-    def retarget(self) -> bool:
-        """Point the jaw prior at the jaw that the current coefficients imply (``jaw_prior_target``); held
-        fixed within a linearisation and moved after every accepted step. Returns whether it can have
-        moved (the ``expressions`` target with a jaw prior)."""
-        f64 = torch.float64
-        self.jaw_tR, self.jaw_tt = (x.to(f64) for x in jaw_prior_target(self.actor, self.s, self.Fw_mean + self.base[4]))
-        return self.s.jaw_prior_weight > 0 and self.s.jaw_prior_target != "rest"
+    def _point_jaw_prior(self) -> None:
+        self.jaw_tR, self.jaw_tt = (x.to(torch.float64) for x in
+                                    jaw_prior_target(self.actor, self.s, self.Fw_mean + self.base[4]))
+
+    def _jaw_energy(self, pose: FramePose) -> float:
+        """The jaw prior's term of :meth:`energy`."""
+        s, u = self.s, self.unit
+        if s.jaw_prior_weight <= 0:
+            return 0.0
+        return s.jaw_prior_weight * (float(squared_norm((pose.jaw_t - self.jaw_tt) / u).mean()) +
+                                     float((pose.jaw_R - self.jaw_tR).square().sum((-1, -2)).mean()))
+
+    def retarget(self) -> float:
+        """Point the jaw prior at the jaw that the current coefficients imply (``jaw_prior_target``): held
+        fixed within a linearisation, moved after every accepted step. Returns the change of the energy
+        at the current base."""
+        if self.s.jaw_prior_weight <= 0 or self.s.jaw_prior_target == "rest":
+            return 0.0
+        pose, _ = self.totals()
+        before = self._jaw_energy(pose)
+        self._point_jaw_prior()
+        return self._jaw_energy(pose) - before
 
     def totals(self, d: torch.Tensor | None = None) -> tuple[FramePose, torch.Tensor]:
         """Poses and coefficient offsets ``(J, E)`` at base + ``d`` (``d (J, n)``; None: the base)."""
@@ -153,9 +168,7 @@ class _Problem:
             acc = lambda x: float((x[2:] - 2 * x[1:-1] + x[:-2]).flatten(1).square().sum(-1).mean())
             e += s.pose_accel_weight * (acc(pose.head_t / u) + acc(pose.head_R) + acc(pose.jaw_t / u) +
                                         acc(pose.jaw_R))
-        if s.jaw_prior_weight > 0:
-            e += s.jaw_prior_weight * (float(((pose.jaw_t - self.jaw_tt) / u).square().sum(-1).mean()) +
-                                       float((pose.jaw_R - self.jaw_tR).square().sum((-1, -2)).mean()))
+        e += self._jaw_energy(pose)
         if s.coeff_temporal_weight > 0 and J > 1:
             dc = c[1:] - c[:-1]
             e += s.coeff_temporal_weight * (self.Fw_sq_diff + P * float((2 * self.Fw_diff_mean * dc +
@@ -440,7 +453,7 @@ def solve_base(fit: SequenceFit, actor: ActorAtPoints, obs: Observations, iterat
                 accepted += 1
                 mu = max(mu / 3, 1e-9)
                 improved = energy - trial >= tol * abs(energy)
-                energy = prob.energy() if prob.retarget() else trial   # the prior's target moved with the step
+                energy = trial + prob.retarget()       # the jaw prior's target moves with the step
                 energies.append(energy)
                 break
             mu *= 4
