@@ -209,3 +209,39 @@ def test_centroid_detector_end_to_end_with_alignment(tmp_path, layout):
     det = Detector.load(S.save_detector(S.centroid_model(size=(96, 96), layout=layout), spec, tmp_path, "bgr"))
     r = det.detect([frame])[0]
     np.testing.assert_allclose(r.points, centres[[2, 1, 0]], atol=0.05)
+
+
+def test_preprocess_in_kept_buffers_gives_the_same_batches():
+    """preprocess with buffers kept between calls gives, value for value, the batch of the readable formula
+    ((x * scale - mean) / std, then the layout), for every colour, layout and dtype; the float batch is
+    computed in the same arrays call after call (same shape), and a new shape gets new ones."""
+    from dataclasses import replace
+
+    from capture.detector.crop import Crop
+    from capture.detector.preprocess import preprocess
+    from capture.detector.spec import InputSpec
+
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 256, (120, 160, 3), dtype=np.uint8) for _ in range(3)]
+    crops = [Crop(80.0 + 5 * i, 60.0 - 3 * i, 90.0 + 10 * i, 7.0 * i) for i in range(3)]
+    for color, layout, dtype in [("RGB", "NCHW", "float32"), ("BGR", "NHWC", "float32"), ("GRAY", "NCHW", "float32"),
+                                 ("RGB", "NCHW", "uint8")]:
+        C = 1 if color == "GRAY" else 3
+        inp = InputSpec("image", layout, (48, 40), color, dtype, 1 / 255, (0.485, 0.456, 0.406)[:C],
+                        (0.229, 0.224, 0.225)[:C])
+        buffers: dict = {}
+        first = None
+        for n in (3, 3, 2):
+            got = preprocess(frames[:n], crops[:n], inp, buffers)
+            u8 = preprocess(frames[:n], crops[:n], replace(inp, dtype="uint8", layout="NHWC"))
+            ref = u8
+            if dtype == "float32":
+                ref = (u8.astype(np.float32) * np.float32(inp.scale) - np.asarray(inp.mean, np.float32)) \
+                    / np.asarray(inp.std, np.float32)
+            if layout == "NCHW":
+                ref = ref.transpose(0, 3, 1, 2)
+            assert got.dtype == ref.dtype and got.flags.c_contiguous
+            np.testing.assert_array_equal(got, ref)
+            if n == 3 and first is not None:
+                assert np.shares_memory(got, first)        # the same arrays, written again
+            first = got if first is None else first

@@ -40,6 +40,7 @@ input pixels) are kept as ``sigma_px`` in frame pixels and turned into a probabi
 from __future__ import annotations
 
 import hashlib
+import threading
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -140,6 +141,7 @@ class Detector:
         self.max_batch = max_batch
         self.model_calls = 0       # session.run calls (for tests and reports)
         self.model_frames = 0      # crops run through the model
+        self._local = threading.local()   # per thread: the input batch's buffers (preprocess)
         self._check_model()
         self.onnx_sha256 = hashlib.sha256(onnx_path.read_bytes()).hexdigest()
 
@@ -246,7 +248,9 @@ class Detector:
     def _run_batch(self, frames, crops, indices, q) -> list[FrameLandmarks]:
         s = self.spec
         n = len(frames)
-        x = preprocess(frames, crops, s.input)
+        if not hasattr(self._local, "buffers"):
+            self._local.buffers = {}
+        x = preprocess(frames, crops, s.input, self._local.buffers)
         if self.fixed_batch is not None and n < self.fixed_batch:
             x = np.concatenate([x, np.repeat(x[-1:], self.fixed_batch - n, axis=0)])
         feeds = {s.input.name: x}
