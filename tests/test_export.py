@@ -234,6 +234,38 @@ def test_npz_keys_shapes_dtypes(tmp_path, take):
         assert z["landmarks_fit"].shape == (T, L, 2)
 
 
+def test_npz_coefficients_written_in_blocks_equal_the_stacked_rows(tmp_path, take, monkeypatch):
+    """params.npz's coefficients_landmarks is written block by block, each frame held as float32 or as its one
+    repeated row: the file holds what np.stack of the frames' arrays gives (NaN for a frame without them),
+    across block edges, and the archive reads back with allow_pickle=False like any np.savez."""
+    from dataclasses import replace
+
+    from capture.export import params as params_module
+    from capture.fit.records import repeated_rows
+
+    monkeypatch.setattr(params_module._Streamed, "BLOCK", 3)        # T frames in several blocks, the last short
+    rng = np.random.default_rng(5)
+    fits = []
+    for j, f in enumerate(take["fits"]):
+        if j % 2:                                              # the 2D default: one row at every landmark
+            f = replace(f, coefficients_landmarks=repeated_rows(np.tile(rng.normal(size=E), (L, 1))))
+        fits.append(replace(f, coefficients_landmarks=None) if j == 4 else f)
+    writer = params_module.ParamsWriter(tmp_path, take["ctx"])
+    for f, d in zip(fits, take["dets"]):
+        writer.write(f, None, d)
+    writer.close()
+    want = np.stack([np.full((L, E), np.nan) if f.coefficients_landmarks is None else f.coefficients_landmarks
+                     for f in fits]).astype(np.float32)
+    with np.load(tmp_path / "params.npz", allow_pickle=False) as z:
+        got = z["coefficients_landmarks"]
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_allclose(z["coefficients_base"][1], fits[1].coefficients_landmarks[0], rtol=1e-6)
+        assert np.isnan(z["coefficients_base"][4]).all()
+        np.testing.assert_allclose(z["head_t_mm"], np.stack([f.head_t for f in fits]))
+    with pytest.raises(ValueError, match="frame row"):
+        params_module._Streamed([np.zeros((L, E)), np.zeros((L + 1, E))], np.float32, (0, 0))
+
+
 # -- overlay ------------------------------------------------------------------------------------
 
 def test_overlay_video(tmp_path, take):

@@ -51,3 +51,59 @@ def test_fits_at_reads_only_the_chunks_that_hold_the_frames(tmp_path):
         np.testing.assert_array_equal(f.vertices, whole[i].vertices)
         np.testing.assert_array_equal(f.landmarks_fit, whole[i].landmarks_fit)
     assert fits_at(tmp_path, []) == {}
+
+
+def _fit(i, w):
+    return FrameFit(frame=i, head_R=np.eye(3), head_t=np.full(3, float(i)), jaw_R=np.eye(3), jaw_t=np.zeros(3),
+                    code=np.zeros(2), coefficients_landmarks=w, vertices=np.zeros((7, 3), np.float32),
+                    landmarks_fit=np.zeros((5, 2)), reprojection_rms_px=0.5, status="fitted")
+
+
+def test_repeated_coefficient_rows_travel_and_are_stored_as_one_row(tmp_path):
+    """The 2D fit without F_W has one coefficient vector at every landmark: repeated_rows makes it a view of
+    one row, which pickles (to and from the fit process) and is stored (the fit cache) as that row, and comes
+    back equal; coefficients that differ per landmark stay whole."""
+    import pickle
+    import zipfile
+
+    from capture.fit.records import is_repeated_rows, repeated_rows
+    from capture.run.store import load_frame_fits
+
+    rng = np.random.default_rng(1)
+    L, E = 468, 24
+    rows = rng.normal(size=(3, E))
+    full = [np.tile(r, (L, 1)) for r in rows]
+    views = [repeated_rows(w) for w in full]
+    assert all(is_repeated_rows(v) and not v.flags.writeable for v in views)
+    for v, w in zip(views, full):
+        np.testing.assert_array_equal(v, w)
+    varied = rng.normal(size=(L, E))
+    assert repeated_rows(varied) is varied and not is_repeated_rows(varied)
+    one_off = full[0].copy()
+    one_off[100, 3] += 1e-12                          # rows equal but for one number: not repeated
+    assert not is_repeated_rows(repeated_rows(one_off))
+
+    # pickled: one row, not L x E numbers
+    packed, whole = pickle.dumps(_fit(0, views[0]), protocol=5), pickle.dumps(_fit(0, full[0]), protocol=5)
+    assert len(whole) - len(packed) > 0.9 * L * E * 8
+    back = pickle.loads(packed)
+    assert is_repeated_rows(back.coefficients_landmarks)
+    np.testing.assert_array_equal(back.coefficients_landmarks, full[0])
+    assert pickle.loads(whole).coefficients_landmarks.flags.writeable   # a whole array comes back whole
+
+    # stored: a chunk of repeated rows holds (n, E) and the counts, and reads back as the same views
+    save_frame_fits(tmp_path / "rows.npz", [_fit(i, v) for i, v in enumerate(views)])
+    with zipfile.ZipFile(tmp_path / "rows.npz") as z:
+        sizes = {i.filename: i.file_size for i in z.infolist()}
+    assert "coefficients_landmarks.npy" not in sizes and sizes["coefficients_landmarks@row.npy"] < 3 * E * 8 + 200
+    for part in (None, ("coefficients_landmarks",)):
+        got = load_frame_fits(tmp_path / "rows.npz", FrameFit, part)
+        for g, w in zip(got, full):
+            assert is_repeated_rows(g.coefficients_landmarks)
+            np.testing.assert_array_equal(g.coefficients_landmarks, w)
+    # a chunk where one frame's coefficients differ per landmark is stored whole, and read back equal
+    mixed = [_fit(0, views[0]), _fit(1, varied), _fit(2, views[2])]
+    save_frame_fits(tmp_path / "mixed.npz", mixed)
+    got = load_frame_fits(tmp_path / "mixed.npz", FrameFit)
+    for g, m in zip(got, mixed):
+        np.testing.assert_array_equal(g.coefficients_landmarks, m.coefficients_landmarks)

@@ -34,6 +34,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
+from capture.fit.records import repeated_rows
 from capture.io.errors import CaptureError
 from capture.run.inputs import RunConfig
 
@@ -70,6 +71,7 @@ def blend_frame(a: Any, b: Any, alpha: float) -> Any:
 
     mixed = _blend({k: np.asarray(getattr(a, k)) for k in BLENDED}, {k: np.asarray(getattr(b, k)) for k in BLENDED},
                    0, alpha)
+    mixed["coefficients_landmarks"] = repeated_rows(mixed["coefficients_landmarks"])
     near = b if alpha >= 0.5 else a
     return replace(near, **mixed)
 

@@ -40,8 +40,11 @@ fps                        ()           float64    video frame rate
 image_size                 (2,)         int64      width, height in pixels
 =========================  ===========  =========  ==================================================
 
-These arrays are small (about 4 L E bytes per frame), so they are accumulated in memory and written
-once by ``close()`` (atomically); every export run rewrites them whole.
+The rows are accumulated in memory and written once by ``close()`` (atomically); every export run
+rewrites them whole. ``coefficients_landmarks`` is the large one (4 L E bytes per frame, 45 KB at 468
+landmarks and 24 shapes): a frame whose coefficients are one row repeated (the 2D fit while F_W is zero,
+:func:`capture.fit.records.repeated_rows`) is held as that row, and the array is written in blocks of
+frames straight into the archive, so it is never held whole.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from capture.export.base import STATUSES, ExportContext, FrameFitLike, PendingFile, status_code
+from capture.fit.records import is_repeated_rows
 
 PARAMS_FILE = "params.npz"
 LANDMARKS_FILE = "landmarks.npz"
@@ -73,6 +77,42 @@ def _stack(rows: list, dtype, tail: tuple[int, ...] | None = None) -> np.ndarray
                 raise ValueError(f"frame row {i}: expected shape {tuple(shape)} like earlier frames, got {r.shape}")
             out[i] = r
     return out
+
+
+class _Streamed:
+    """A (T, ...) array of ``dtype`` written to the archive in blocks of ``BLOCK`` frames (:func:`_savez`);
+    ``rows``: per frame an array of the row shape (a read-only broadcast view is fine) or None (NaN)."""
+
+    BLOCK = 256
+
+    def __init__(self, rows: list, dtype, tail: tuple[int, ...]):
+        self.rows, self.dtype = rows, np.dtype(dtype)
+        self.shape = next((np.shape(r) for r in rows if r is not None), tail)
+        for i, r in enumerate(rows):
+            if r is not None and np.shape(r) != self.shape:
+                raise ValueError(f"frame row {i}: expected shape {self.shape} like earlier frames, got {np.shape(r)}")
+
+    def blocks(self):
+        for k in range(0, len(self.rows), self.BLOCK):
+            yield _stack(self.rows[k:k + self.BLOCK], self.dtype, self.shape)
+
+
+def _savez(fh, arrays: dict) -> None:
+    """``np.savez(fh, **arrays)`` where a value may also be :class:`_Streamed` (written block by block: the
+    same bytes as its stacked array, which ``np.load`` reads back)."""
+    import zipfile
+
+    with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as z:
+        for key, value in arrays.items():
+            with z.open(key + ".npy", "w", force_zip64=True) as member:
+                if not isinstance(value, _Streamed):
+                    np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+                    continue
+                np.lib.format.write_array_header_1_0(member, {
+                    "descr": np.lib.format.dtype_to_descr(value.dtype), "fortran_order": False,
+                    "shape": (len(value.rows),) + tuple(value.shape)})
+                for block in value.blocks():
+                    member.write(memoryview(np.ascontiguousarray(block)).cast("B"))
 
 
 def _base(base_rows: list, landmark_rows: list) -> np.ndarray:
@@ -109,10 +149,11 @@ class ParamsWriter:
         r["frame_index"].append(frame)
         r["status"].append(status_code(getattr(fit, "status", "fitted")))
         for key, attr in (("head_R", "head_R"), ("head_t_mm", "head_t"), ("jaw_R", "jaw_R"), ("jaw_t_mm", "jaw_t"),
-                          ("codes", "code"), ("coefficients_landmarks", "coefficients_landmarks"),
-                          ("coefficients_base", "coefficients_base"),
+                          ("codes", "code"), ("coefficients_base", "coefficients_base"),
                           ("landmarks_fit", "landmarks_fit")):
             r[key].append(_opt(fit, attr))
+        w = _opt(fit, "coefficients_landmarks")        # held as float32, or as its one row (a view of E numbers)
+        r["coefficients_landmarks"].append(w if w is None or is_repeated_rows(w) else w.astype(np.float32))
         rms = getattr(fit, "reprojection_rms_px", None)
         r["reprojection_rms_px"].append(np.nan if rms is None else float(rms))
         if detection is not None:
@@ -138,7 +179,7 @@ class ParamsWriter:
             "jaw_R": _stack(r["jaw_R"], np.float64, (3, 3)),
             "jaw_t_mm": _stack(r["jaw_t_mm"], np.float64, (3,)),
             "codes": _stack(r["codes"], np.float32, (0,)),
-            "coefficients_landmarks": _stack(r["coefficients_landmarks"], np.float32, (0, 0)),
+            "coefficients_landmarks": _Streamed(r["coefficients_landmarks"], np.float32, (0, 0)),
             "coefficients_base": _base(r["coefficients_base"], r["coefficients_landmarks"]),
             "reprojection_rms_px": np.asarray(r["reprojection_rms_px"], np.float64),
             "status": np.asarray(r["status"], np.int8),
@@ -169,7 +210,7 @@ class ParamsWriter:
                 pending = PendingFile(self.out_dir / name)
                 self._pending.append(pending)
                 with open(pending.tmp, "wb") as fh:
-                    np.savez(fh, **arrays)
+                    _savez(fh, arrays)
             for p in self._pending:
                 out.append(p.commit())
         except BaseException:

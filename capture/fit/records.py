@@ -33,6 +33,23 @@ class WindowedFit:
     threads: int | None = None
 
 
+def repeated_rows(a: np.ndarray) -> np.ndarray:
+    """``a`` (L, E) as a read-only view of its first row repeated L times when all its rows are equal (the
+    2D fit while F_W is zero: one coefficient vector at every fit point), else ``a`` itself.
+
+    Such a view holds E numbers, not L x E: a :class:`FrameFit` pickles it as one row (to and from the fit
+    process) and the fit cache stores one row per frame (:func:`capture.run.store.save_frame_fits`)."""
+    a = np.asarray(a)
+    if a.ndim == 2 and len(a) > 1 and a.strides[0] != 0 and (a == a[0]).all():
+        return np.broadcast_to(a[0].copy(), a.shape)
+    return a
+
+
+def is_repeated_rows(a) -> bool:
+    """Is ``a`` a view made by :func:`repeated_rows` (2-D, first axis of stride 0)?"""
+    return isinstance(a, np.ndarray) and a.ndim == 2 and len(a) > 1 and a.strides[0] == 0
+
+
 @dataclass
 class FrameFit:
     """The fit of one frame. Lengths in mm, camera frame (OpenCV axes); ``x_cam = head_R @ x + head_t``."""
@@ -51,3 +68,18 @@ class FrameFit:
     error3d_mm: float = float("nan")   # fit3d: mean distance to the given mesh over all vertices
     window_start: int = 0              # first frame of the (later) window this frame came from
     coefficients_base: np.ndarray | None = None  # (E,) the per-frame base: w_j(c) = base + F_W(z_j, c)
+
+    def __getstate__(self) -> dict:
+        """Pickled with ``coefficients_landmarks`` as one row when it is :func:`repeated_rows` (90 KB less per
+        frame of 468 landmarks and 24 shapes between the fit process and the run)."""
+        state = dict(self.__dict__)
+        w = state["coefficients_landmarks"]
+        if is_repeated_rows(w):
+            state["coefficients_landmarks"] = ("repeated rows", np.ascontiguousarray(w[0]), len(w))
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        w = state["coefficients_landmarks"]
+        if isinstance(w, tuple) and w[:1] == ("repeated rows",):
+            state = {**state, "coefficients_landmarks": np.broadcast_to(w[1], (w[2], len(w[1])))}
+        self.__dict__.update(state)

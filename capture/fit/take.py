@@ -47,7 +47,7 @@ import torch
 
 from calib.camera import Camera
 from calib.projection import camera_tensors, project_points
-from capture.fit.records import FrameFit, WindowedFit  # noqa: F401  (their home before)
+from capture.fit.records import FrameFit, WindowedFit, repeated_rows  # noqa: F401  (their home before)
 from capture.io.atomic import atomic_path
 from capture.fit.init import PnPSettings, initial_head_poses, rigid_align
 from models.fit import (FIT3D_PRESETS, FIT_PRESETS, ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence,
@@ -415,7 +415,7 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
                 f = _blend(hf, f, i, _smoothstep((i + 1) / (n_held + 1)))
             rms, err3d = source.frame_metrics(j, f["vertices"], f["landmarks_fit"])
             yield FrameFit(frame=j, head_R=f["head_R"], head_t=f["head_t"], jaw_R=f["jaw_R"], jaw_t=f["jaw_t"],
-                           code=f["code"], coefficients_landmarks=f["coefficients_landmarks"],
+                           code=f["code"], coefficients_landmarks=repeated_rows(f["coefficients_landmarks"]),
                            vertices=f["vertices"].astype(np.float32), landmarks_fit=f["landmarks_fit"],
                            reprojection_rms_px=rms, status="bridged" if win.bridged[i] else "fitted",
                            error3d_mm=err3d, window_start=win.start, coefficients_base=f["coefficients_base"])
