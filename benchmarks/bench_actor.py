@@ -17,6 +17,13 @@ The paper's 1e4 iterations take hours on 2 CPU cores, so by default the paper pr
     python benchmarks/bench_actor.py --actors fitted,estimated,sub1 --presets fast
     python benchmarks/bench_actor.py --presets default            # the accurate default (~55 min CPU)
     python benchmarks/bench_actor.py --quick                      # checks that it runs (CI): a few steps
+    python benchmarks/bench_actor.py --presets default --outofspan 0,1,2,3,4,5
+
+``--outofspan SEEDS``: a lower training error is a better actor only if it is no worse where its training
+stops. Each trained actor of the sample's topology (fitted, estimated) is then fitted out of span as
+``benchmarks/bench_outofspan.py --seeds SEEDS --configs 1000:0.5 --no-bound`` measures it (held-out ICT
+expressions, 2D, the default fit), side by side on the same landmarks with the bundled demo actor and the
+plain blendshape baseline GBS19; the means over all sequences are printed and kept in the JSON.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ import time
 from pathlib import Path
 
 ACTORS = ("fitted", "estimated", "sub1")
+DEMO_ACTOR = Path(__file__).resolve().parents[1] / "capture" / "data" / "demo_actor"
 
 
 def subdivided_sample(out: Path, times: int = 1) -> Path:
@@ -98,6 +106,7 @@ def run(preset: str, kind: str, out: Path, iterations: int | None, width: int | 
     if stats["rc"] != 0:
         sys.exit(f"{preset} training failed:\n{proc.stderr[-2000:]}")
     stats["meta"] = json.loads((actor / "actor.json").read_text())
+    stats["actor"] = str(actor)
     return stats
 
 
@@ -135,6 +144,34 @@ def report(preset: str, kind: str, stats: dict, full_iterations: int | None = No
               f"(error above is after {tr['iterations']} iterations)")
 
 
+def out_of_span(actor: Path, seeds: str, out: Path) -> dict:
+    """``bench_outofspan.py --seeds SEEDS`` for ``actor`` beside the bundled demo actor (its own process: it
+    fixes the thread count before torch loads); ``{method: mean mm over all sequences}``, the trained actor
+    as ``"trained"``, the demo as ``"demo"``."""
+    folder = out / f"outofspan_{actor.name}"
+    cmd = [sys.executable, str(Path(__file__).with_name("bench_outofspan.py")), "--actor", str(actor),
+           "--compare-actor", str(DEMO_ACTOR), "--seeds", seeds, "--configs", "1000:0.5", "--no-bound",
+           "--out", str(folder)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        sys.exit(f"out-of-span fits of {actor} failed:\n{proc.stderr[-2000:]}")
+    seed_list = [s.strip() for s in seeds.split(",")]
+    summary = json.loads((folder / f"outofspan_seeds{seed_list[0]}-{seed_list[-1]}.json").read_text())["summary"]
+    names = {"AIM default": "trained", f"AIM default [{DEMO_ACTOR.name}]": "demo"}
+    return {names.get(r["method"], r["method"]): {"mean_mm": r["mean_mm"], "median_mm": r["median_mm"],
+                                                  "sequences": r["sequences"], "per_seed_mean_mm": r["per_seed_mean_mm"]}
+            for r in summary}
+
+
+def report_out_of_span(kind: str, preset: str, figures: dict) -> None:
+    t, d, g = figures["trained"], figures["demo"], figures["GBS19 [0,1]"]
+    print(f"out of span ({t['sequences']} sequences, 1000 landmarks, 0.5 px): {kind}/{preset} {t['mean_mm']:.3f} mm "
+          f"(median {t['median_mm']:.3f}), bundled demo actor {d['mean_mm']:.3f} (median {d['median_mm']:.3f}), "
+          f"GBS19 {g['mean_mm']:.3f}; trained / demo {t['mean_mm'] / d['mean_mm']:.3f}, trained / GBS19 "
+          f"{t['mean_mm'] / g['mean_mm']:.2f}; per seed trained / demo: "
+          + ", ".join(f"{t['per_seed_mean_mm'][k]:.3f} / {d['per_seed_mean_mm'][k]:.3f}" for k in t["per_seed_mean_mm"]))
+
+
 def main(argv: list[str] | None = None) -> dict:
     """Run the benchmark; returns ``{"out": folder, "runs": [{"preset", "kind", stats + actor metadata}]}``."""
     argv = sys.argv[1:] if argv is None else argv
@@ -152,6 +189,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--presets", default="fast,paper", help="comma-separated, of fast, default, paper")
     ap.add_argument("--hidden-matmul", default="", help="comma-separated precisions of the hidden products to run "
                     "side by side (fp32, bf16, auto; default: the preset's)")
+    ap.add_argument("--outofspan", default="", metavar="SEEDS",
+                    help="also fit each trained actor out of span on these seeds (e.g. 0,1,2,3,4,5), beside the "
+                         "bundled demo actor and GBS19")
     args = ap.parse_args(argv)
     kinds = [k.strip() for k in args.actors.split(",") if k.strip()]
     bad = [k for k in kinds if k not in ACTORS]
@@ -170,6 +210,9 @@ def main(argv: list[str] | None = None) -> dict:
             for hidden_matmul in precisions:
                 stats = run(preset, kind, out, iters, 32 if args.quick else None, args.threads, hidden_matmul)
                 report(preset, kind, stats, full)
+                if args.outofspan and kind != "sub1":       # the held-out performance is in the sample's topology
+                    stats["outofspan"] = out_of_span(Path(stats["actor"]), args.outofspan, out)
+                    report_out_of_span(kind, preset, stats["outofspan"])
                 runs.append({"preset": preset, "kind": kind, "hidden_matmul": hidden_matmul, **stats})
     return {"out": str(out), "runs": runs}
 
