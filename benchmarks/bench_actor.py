@@ -144,14 +144,14 @@ def report(preset: str, kind: str, stats: dict, full_iterations: int | None = No
               f"(error above is after {tr['iterations']} iterations)")
 
 
-def out_of_span(actor: Path, seeds: str, out: Path) -> dict:
+def out_of_span(actor: Path, seeds: str, out: Path, quick: bool = False) -> dict:
     """``bench_outofspan.py --seeds SEEDS`` for ``actor`` beside the bundled demo actor (its own process: it
     fixes the thread count before torch loads); ``{method: mean mm over all sequences}``, the trained actor
     as ``"trained"``, the demo as ``"demo"``."""
     folder = out / f"outofspan_{actor.name}"
     cmd = [sys.executable, str(Path(__file__).with_name("bench_outofspan.py")), "--actor", str(actor),
            "--compare-actor", str(DEMO_ACTOR), "--seeds", seeds, "--configs", "1000:0.5", "--no-bound",
-           "--out", str(folder)]
+           "--out", str(folder)] + (["--quick"] if quick else [])
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         sys.exit(f"out-of-span fits of {actor} failed:\n{proc.stderr[-2000:]}")
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> dict:
                 stats = run(preset, kind, out, iters, 32 if args.quick else None, args.threads, hidden_matmul)
                 report(preset, kind, stats, full)
                 if args.outofspan and kind != "sub1":       # the held-out performance is in the sample's topology
-                    stats["outofspan"] = out_of_span(Path(stats["actor"]), args.outofspan, out)
+                    stats["outofspan"] = out_of_span(Path(stats["actor"]), args.outofspan, out, args.quick)
                     report_out_of_span(kind, preset, stats["outofspan"])
                 runs.append({"preset": preset, "kind": kind, "hidden_matmul": hidden_matmul, **stats})
     return {"out": str(out), "runs": runs}

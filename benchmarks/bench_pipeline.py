@@ -1,6 +1,7 @@
 """Whole ``capture run`` against the detector-only pass, 1 core against 2, start-up, and ``capture live``.
 
-The take: ``capture synth`` of the bundled demo actor (1280x720, H.264, 468 landmarks embedded on the
+The take: ``capture synth`` of the bundled demo actor (1280x720, re-encoded as H.264 4:2:0 as a camera
+records it, ``--source``; 468 landmarks embedded on the
 actor). The detector: a MobileNet-sized network with random weights (192x192 RGB input, depthwise
 separable convolutions, ~2.5 MB of float32 weights, 468 landmarks; :func:`mobilenet_detector`) whose
 landmarks are a fixed face layout in the crop plus a small term of its random features, so that
@@ -108,8 +109,12 @@ def mobilenet_detector(out_dir: Path, template_points: np.ndarray, margin: float
     return onnx_path
 
 
-def setup(work: Path, frames: int, size: str) -> dict:
-    """Actor (the demo actor + a 468-landmark embedding), take and detector in ``work`` (reused if there)."""
+def setup(work: Path, frames: int, size: str, source: str = "yuv420p") -> dict:
+    """Actor (the demo actor + a 468-landmark embedding), take and detector in ``work`` (reused if there).
+
+    ``source``: ``yuv420p`` (default) re-encodes the synthetic take as a camera records it (H.264 4:2:0, crf
+    18, :func:`upscaled` at the take's own size); ``synth`` keeps ``capture synth``'s H.264 4:4:4, whose
+    conversion to BGR costs OpenCV 3-4 ms a frame at 1280x720 where 4:2:0's costs 0.5-0.7 ms."""
     from capture.detector.embedding import embedded_points, parse_embedding, write_embedding
 
     actor, take, det = work / "actor", work / f"take_{frames}_{size}", work / "detector"
@@ -131,8 +136,12 @@ def setup(work: Path, frames: int, size: str) -> dict:
         emb = parse_embedding(src)
         write_embedding(actor, emb, template)
         mobilenet_detector(det, embedded_points(emb, template))
-    return {"actor": actor, "video": take / "take.mp4", "camera": take / "camera.json",
-            "detector": det / f"{DET_NAME}.onnx"}
+    video = take / "take.mp4"
+    if source == "yuv420p":
+        video = upscaled(video, take / "take_yuv420p.mp4", tuple(int(x) for x in size.split("x")), 1)
+    elif source != "synth":
+        raise ValueError(f"--source must be yuv420p or synth, got {source!r}")
+    return {"actor": actor, "video": video, "camera": take / "camera.json", "detector": det / f"{DET_NAME}.onnx"}
 
 
 def _env() -> dict:
@@ -228,6 +237,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--memory", action="store_true", help="only: peak memory of capture run at 1920x1080 (all "
                     "exports but the overlay) on the take and on it played 4 times")
     ap.add_argument("--quick", action="store_true", help="check that it runs: 24 frames at 320x240, 1 repeat")
+    ap.add_argument("--source", default="yuv420p", choices=("yuv420p", "synth"),
+                    help="the video: the synthetic take re-encoded in 4:2:0 as cameras record (default), or "
+                         "capture synth's own 4:4:4 H.264")
     args = ap.parse_args(argv)
     if args.quick:
         args.frames, args.size, args.repeats, args.live_fps = 24, "320x240", 1, "25"
@@ -248,7 +260,7 @@ def main(argv: list[str] | None = None) -> dict:
 def _measure(args, work: Path) -> dict:
     from capture.io.atomic import write_text
 
-    s = setup(work, args.frames, args.size)
+    s = setup(work, args.frames, args.size, args.source)
     py = sys.executable
     if args.memory:
         return _memory(s, work)
@@ -301,7 +313,7 @@ def _measure(args, work: Path) -> dict:
 
     n = rows["run 2 cores"][0]["frames"]
     summary = {
-        "frames": n, "size": args.size, "repeats": args.repeats, "loadavg": loads,
+        "frames": n, "size": args.size, "source": args.source, "repeats": args.repeats, "loadavg": loads,
         "detector_only_fps": n / med("detector only"),
         "run_2_cores_fps": n / med("run 2 cores"), "run_1_core_fps": n / med("run 1 core"),
         "run_over_detector_only": med("run 2 cores") / med("detector only"),
@@ -315,7 +327,7 @@ def _measure(args, work: Path) -> dict:
         summary.update({f"{key}_fps_sustained": med(name, "fps"), f"{key}_dropped": [x["dropped"] for x in rows[name]],
                         f"{key}_max_lag": max(x["max_lag"] for x in rows[name]),
                         f"{key}_latency_p95_s": med(name, "latency_p95_s")})
-    print(f"{n} frames {args.size}, {args.repeats} interleaved repeats (medians); load average before/after: "
+    print(f"{n} frames {args.size} ({args.source}), {args.repeats} interleaved repeats (medians); load average before/after: "
           f"{loads[0][0]:.2f} / {loads[-1][0]:.2f}")
     for name, v in rows.items():
         print(f"  {name:15s} " + "  ".join(f"{x['wall_s']:.2f}s" for x in v) +

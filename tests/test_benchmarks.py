@@ -245,6 +245,20 @@ def test_bench_actor_quick(tmp_path):
 
 
 @needs_ict
+def test_bench_actor_out_of_span_beside_the_demo_actor(tmp_path):
+    """``--outofspan``: the trained actor and the bundled demo actor fitted on the same held-out landmarks,
+    each under its own name (20 steps of a narrow net are far worse than the demo), with GBS19 beside."""
+    from benchmarks.bench_actor import main
+
+    res = main(["--quick", "--out", str(tmp_path), "--actors", "fitted", "--presets", "fast", "--outofspan", "0"])
+    (run,) = res["runs"]
+    f = run["outofspan"]
+    assert {"trained", "demo", "GBS19 [0,1]"} <= set(f) and all(v["sequences"] == 1 for v in f.values())
+    assert 0 < 1.5 * f["demo"]["mean_mm"] < f["trained"]["mean_mm"], f
+    assert f["trained"]["per_seed_mean_mm"]["0"] == f["trained"]["mean_mm"]
+
+
+@needs_ict
 def test_bench_outofspan_over_seeds(tmp_path):
     """``--seeds``: each seed runs as ``--seed``; the summary's means are those of all their sequences."""
     from benchmarks.bench_outofspan import main
