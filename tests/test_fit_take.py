@@ -146,6 +146,13 @@ def test_resume_gives_the_same_outputs(take, clean, tmp_path, monkeypatch):
         assert a.frame == b.frame and a.status == b.status
         for name in ("vertices", "head_R", "head_t", "jaw_R", "code", "coefficients_landmarks", "landmarks_fit"):
             np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=1e-5, err_msg=name)
+    # the 2D default (F_W zero): each window's coefficients are stored as one row per frame, the fit's rows
+    with np.load(cache / "win_000000.npz", allow_pickle=False) as z:
+        assert "coefficients_landmarks" not in z.files
+        rows, counts = z["coefficients_landmarks@row"], z["coefficients_landmarks@rows"]
+    assert rows.shape == (WINDOW, clean[0].coefficients_landmarks.shape[1]) and (counts == len(take["template_points"])).all()
+    for f in clean[:WINDOW - OVERLAP]:                 # frames of the first window that no blend touches
+        np.testing.assert_array_equal(np.asarray(f.coefficients_landmarks), np.tile(rows[f.frame], (counts[0], 1)))
 
 
 def test_fit_meshes_known_answer(take):

@@ -50,6 +50,18 @@ def is_repeated_rows(a) -> bool:
     return isinstance(a, np.ndarray) and a.ndim == 2 and len(a) > 1 and a.strides[0] == 0
 
 
+ROW_SUFFIX, ROWS_SUFFIX = "@row", "@rows"   # in an NPZ: a (T, L, E) field stored as its rows (T, E) and L (T,)
+
+
+def stored_rows(name: str, per_frame: list[np.ndarray]) -> dict[str, np.ndarray] | None:
+    """``{NAME@row: (T, E), NAME@rows: (T,)}`` for per-frame (L, E) arrays that each repeat one row (views
+    of :func:`repeated_rows`, or plain arrays whose rows are all equal); None when one of them does not."""
+    if not per_frame or not all(is_repeated_rows(repeated_rows(a)) for a in per_frame):
+        return None
+    return {name + ROW_SUFFIX: np.stack([np.asarray(a)[0] for a in per_frame]),
+            name + ROWS_SUFFIX: np.array([len(a) for a in per_frame], np.int64)}
+
+
 @dataclass
 class FrameFit:
     """The fit of one frame. Lengths in mm, camera frame (OpenCV axes); ``x_cam = head_R @ x + head_t``."""

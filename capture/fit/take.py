@@ -23,7 +23,8 @@ neurally reparameterised sequence fit (:mod:`models.fit`):
 * **Memory** is flat in the take length: at most one window of vertices is held (plus the overlap).
 * **Resume**: with ``cache_dir`` every solved window writes ``win_<start>.pt`` (the
   :class:`~models.fit.SequenceFit` state; tensors only, read with ``weights_only=True``) and then
-  ``win_<start>.npz`` (its frames' parameters, codes and a key). The key chains the settings, the
+  ``win_<start>.npz`` (its frames' parameters, codes and a key; coefficients that repeat one row over
+  the landmarks as ``coefficients_landmarks@row`` (J, E) and ``@rows`` (J,)). The key chains the settings, the
   window's inputs and the previous window's key, so a rerun reuses exactly the windows that are still
   valid; outputs (vertices included) are recomputed from the state, so a resumed run equals an
   uninterrupted one.
@@ -47,7 +48,7 @@ import torch
 
 from calib.camera import Camera
 from calib.projection import camera_tensors, project_points
-from capture.fit.records import FrameFit, WindowedFit, repeated_rows  # noqa: F401  (their home before)
+from capture.fit.records import FrameFit, WindowedFit, repeated_rows, stored_rows  # noqa: F401  (their home before)
 from capture.io.atomic import atomic_path
 from capture.fit.init import PnPSettings, initial_head_poses, rigid_align
 from models.fit import (FIT3D_PRESETS, FIT_PRESETS, ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence,
@@ -303,7 +304,9 @@ def _save_cached(cache_dir: Path, start: int, key: str, state: dict, raw: dict) 
     npz, pt = cache_dir / f"win_{start:06d}.npz", cache_dir / f"win_{start:06d}.pt"
     with atomic_path(pt) as tmp:
         torch.save({k: v.detach().cpu() for k, v in state.items()}, tmp)
-    params = {k: raw[k] for k in ("head_R", "head_t", "jaw_R", "jaw_t", "code", "coefficients_landmarks")}
+    params = {k: raw[k] for k in ("head_R", "head_t", "jaw_R", "jaw_t", "code")}
+    w = raw["coefficients_landmarks"]                  # (J, L, E): as its rows where each frame repeats one
+    params.update(stored_rows("coefficients_landmarks", list(w)) or {"coefficients_landmarks": w})
     with atomic_path(npz) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, key=np.array(key), start=np.array(start), **params)

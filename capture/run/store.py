@@ -26,7 +26,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from capture.fit.records import is_repeated_rows
+from capture.fit.records import ROW_SUFFIX, ROWS_SUFFIX, is_repeated_rows, stored_rows
 from capture.io.atomic import atomic_path, is_temp_name, write_json
 from capture.io.errors import CaptureError
 
@@ -292,9 +292,6 @@ def write_run_json(out: Path, take_id: str, take_label: str, settings: dict, fin
 
 
 # ------------------------------------------------------------------------------------ frame fits
-ROWS_SUFFIX, COUNT_SUFFIX = "@row", "@rows"   # a field whose every value is repeated_rows: its row, its count
-
-
 def save_frame_fits(path: Path, fits: Sequence[Any]) -> Path:
     """Stack the fields of dataclass frame fits into one NPZ (None -> NaN; strings as unicode arrays).
 
@@ -312,9 +309,9 @@ def save_frame_fits(path: Path, fits: Sequence[Any]) -> Path:
             arrays[f.name] = np.array(["" if v is None else str(v) for v in values])
             continue
         arrs = [None if v is None else np.asarray(_to_numpy(v)) for v in values]
-        if all(is_repeated_rows(a) for a in arrs):     # one row per frame, and how often it repeats
-            arrays[f.name + ROWS_SUFFIX] = np.stack([a[0] for a in arrs])
-            arrays[f.name + COUNT_SUFFIX] = np.array([len(a) for a in arrs], np.int64)
+        rows = stored_rows(f.name, arrs) if all(is_repeated_rows(a) for a in arrs) else None
+        if rows is not None:                            # one row per frame, and how often it repeats
+            arrays.update(rows)
             continue
         ref = next(a for a in arrs if a is not None)
         if any(a is None for a in arrs):
@@ -337,14 +334,14 @@ def load_frame_fits(path: Path, cls, fields: Iterable[str] | None = None) -> lis
     only these are read, the others are None; ``frame`` always)."""
     from capture.io.arrays import load_npz
 
-    only = None if fields is None else {k + s for k in ("frame", *fields) for s in ("", ROWS_SUFFIX, COUNT_SUFFIX)}
+    only = None if fields is None else {k + s for k in ("frame", *fields) for s in ("", ROW_SUFFIX, ROWS_SUFFIX)}
     g = load_npz(path, "fit cache", "delete it (or rerun with --overwrite) to fit again", only=only)
     n = len(next(iter(g.values()))) if g else 0
     names = {f.name for f in dataclasses.fields(cls)}
-    rows = {k[:-len(ROWS_SUFFIX)] for k in g if k.endswith(ROWS_SUFFIX)}
-    known = names | {k + s for k in rows & names for s in (ROWS_SUFFIX, COUNT_SUFFIX)}
+    rows = {k[:-len(ROW_SUFFIX)] for k in g if k.endswith(ROW_SUFFIX)}
+    known = names | {k + s for k in rows & names for s in (ROW_SUFFIX, ROWS_SUFFIX)}
     if not n or any(k not in known or v.ndim == 0 or len(v) != n for k, v in g.items()) \
-            or any(k + COUNT_SUFFIX not in g or g[k + ROWS_SUFFIX].ndim != 2 or (g[k + COUNT_SUFFIX] < 1).any()
+            or any(k + ROWS_SUFFIX not in g or g[k + ROW_SUFFIX].ndim != 2 or (g[k + ROWS_SUFFIX] < 1).any()
                    for k in rows):
         raise CaptureError(f"fit cache {path} does not hold frame fits of one length; delete it (or rerun with "
                            f"--overwrite) to fit again")
@@ -353,8 +350,8 @@ def load_frame_fits(path: Path, cls, fields: Iterable[str] | None = None) -> lis
         kw = {}
         for f in dataclasses.fields(cls):
             if f.name in rows:
-                row = g[f.name + ROWS_SUFFIX][i]
-                kw[f.name] = np.broadcast_to(row, (int(g[f.name + COUNT_SUFFIX][i]), len(row)))
+                row = g[f.name + ROW_SUFFIX][i]
+                kw[f.name] = np.broadcast_to(row, (int(g[f.name + ROWS_SUFFIX][i]), len(row)))
                 continue
             if f.name not in g:
                 kw[f.name] = None
