@@ -12,17 +12,24 @@ bfloat16 inside the kernel (:class:`models.siren.SineLayer`) where that mode rea
 :func:`models.siren.onednn_bf16_rounds`: on an AMD EPYC with AVX-512 BF16 it stayed float32-accurate and
 only 1.2-1.4x faster), elsewhere on bfloat16 copies (there 1.9x faster than float32 for the forward product).
 
-Whether bfloat16 is faster is measured, not guessed from CPU flags: without AMX or AVX-512 BF16,
-oneDNN emulates it and it is slower than float32.
+Whether bfloat16 is faster is decided by the CPU's instructions where Linux lists them
+(:func:`models.hardware.has_bf16_products`: AMX, AVX-512 BF16 or ARM BF16; without them oneDNN emulates
+bfloat16 and it is slower than float32), and measured elsewhere (:func:`bf16_speedup`). A timed probe
+alone made the choice depend on what else ran: two trainings started together on a busy 2-core AMD EPYC
+came out on either side of the threshold, one in float32 at half the speed of the other, in bfloat16 (the
+same command, two different actors); timed by CPU time instead, a probe beside a busy program on the same
+core still measured 3.2x where it measured 5.6x alone.
 """
 
 from __future__ import annotations
 
 import contextlib
 import time
+from pathlib import Path
 
 import torch
 
+from models.hardware import has_bf16_products
 from models.siren import SineLayer
 
 HIDDEN_MATMUL = ("fp32", "bf16", "auto")
@@ -54,12 +61,10 @@ def bf16_speedup(device: torch.device | str = "cpu", width: int = 256, rows: int
     (best of 5 after a warm-up, the two interleaved), on ``device`` with the current thread count; cached
     per process.
 
-    On the CPU the time is the process's CPU time, not the wall clock: what the product costs, not how
-    long other programs kept it off a core. Timed by the wall clock, two trainings started together on a
-    busy 2-core AMD EPYC came out on either side of ``min_speedup``: one trained in float32 at half the
-    speed of the other, in bfloat16 (the same command, a different actor). There six wall-clock probes
-    under load measured 4.5-12.1, six CPU-time probes 4.5-4.9 (``tests/test_precision.py`` runs one
-    beside a busy program on the same core)."""
+    On the CPU the time is the process's CPU time, not the wall clock, which counts the time other programs
+    kept it off a core: under load six wall-clock probes measured 4.5-12.1x on the AMD EPYC, six CPU-time
+    probes 4.5-4.9x. It still moves with the load (3.2x beside a busy program on the same core), so
+    :func:`resolve_hidden_matmul` uses it only where the CPU's flags are not known."""
     device = torch.device(device)
     key = (str(device), width, torch.get_num_threads())
     if key in _SPEEDUP_CACHE:
@@ -95,13 +100,20 @@ def bf16_speedup(device: torch.device | str = "cpu", width: int = 256, rows: int
 
 
 def resolve_hidden_matmul(setting: str, device: torch.device | str = "cpu", width: int = 256,
-                          min_speedup: float = 2.0) -> str:
-    """``"fp32"`` or ``"bf16"`` for a :class:`TrainSettings` ``hidden_matmul`` of ``setting``:
-    ``"auto"`` is ``"bf16"`` where a bfloat16 product of the layers' size is at least
-    ``min_speedup`` times faster than a float32 one (the whole step gains less: conversions, sines
-    and the output layers stay float32)."""
+                          min_speedup: float = 2.0, cpuinfo: str | Path = "/proc/cpuinfo") -> str:
+    """``"fp32"`` or ``"bf16"`` for a :class:`TrainSettings` ``hidden_matmul`` of ``setting``.
+
+    ``"auto"`` on the CPU: ``"bf16"`` where the CPU multiplies bfloat16 in hardware
+    (:func:`models.hardware.has_bf16_products` of ``cpuinfo``), so the same machine always trains the same
+    actor; where its flags are not known, and on other devices, where a bfloat16 product of the layers'
+    size is measured at least ``min_speedup`` times faster than a float32 one (the whole step gains less:
+    conversions, sines and the output layers stay float32)."""
     if setting not in HIDDEN_MATMUL:
         raise ValueError(f"hidden_matmul must be one of {', '.join(HIDDEN_MATMUL)}, got {setting!r}")
     if setting != "auto":
         return setting
+    if torch.device(device).type == "cpu":
+        hardware = has_bf16_products(cpuinfo)
+        if hardware is not None:
+            return "bf16" if hardware else "fp32"
     return "bf16" if bf16_speedup(device, width) >= min_speedup else "fp32"

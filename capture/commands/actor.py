@@ -46,7 +46,7 @@ def train_command(
     depth: Optional[int] = typer.Option(None, help="Number of SIREN sine layers (default: from the preset)."),
     points_per_step: Optional[int] = typer.Option(None, help="Template points per step, 0 = all (default: from the preset)."),
     seed: Optional[int] = typer.Option(None, help="Random seed (default: from the preset)."),
-    hidden_matmul: Optional[str] = typer.Option(None, "--hidden-matmul", help="Precision of the hidden layers' products in the first 85 % of the steps: fp32, bf16, or auto (bf16 where this machine multiplies it 2x faster, e.g. CPUs with AMX; default: from the preset). Solves, evaluations and the last steps are float32."),
+    hidden_matmul: Optional[str] = typer.Option(None, "--hidden-matmul", help="Precision of the hidden layers' products in the first 85 % of the steps: fp32, bf16, or auto (bf16 where the CPU multiplies it in hardware: AMX, AVX-512 BF16, ARM BF16; elsewhere where it is timed 2x faster; default: from the preset). Solves, evaluations and the last steps are float32."),
     input_chart: Optional[float] = typer.Option(None, "--input-chart", help="The networks read each point this fraction of the way to the shape that parts the neutral's touching lips (jawOpen), so that the lips are apart where the networks look; 0 = at the point itself, as in the paper (default: from the preset, 0.3; paper 0)."),
     symmetry_plane: Optional[str] = typer.Option(None, help="Override the estimated symmetry plane: nx,ny,nz,offset_mm."),
     mirror: bool = typer.Option(True, "--mirror/--no-mirror", help="Also learn the other side of one-sided expressions (mouthStretch_L without mouthStretch_R: its scan reflected across the symmetry plane), so that fits can use both sides."),

@@ -13,20 +13,13 @@ FEATURES = ("avx2", "avx512f", "avx512_bf16", "amx_bf16")
 
 def machine(cpuinfo: str | Path = "/proc/cpuinfo") -> dict:
     """``{"cpu": model name, "cores": logical CPUs, "features": those of FEATURES the CPU has}``: from
-    ``cpuinfo`` (Linux's ``/proc/cpuinfo``), else ``platform.processor()`` and no features (None / [] when nothing says).
+    ``cpuinfo`` (Linux's ``/proc/cpuinfo``, :func:`models.hardware.cpu_info`), else ``platform.processor()``
+    and no features (None / [] when nothing says).
     One training takes twice as long on some of the CPUs that users and CI have as on others, so a time
     means little without it."""
-    cpu, flags = platform.processor() or None, set()
-    try:
-        with open(cpuinfo) as fh:
-            for line in fh:
-                key, _, value = line.partition(":")
-                key = key.strip()
-                if key == "model name":
-                    cpu = value.strip()
-                elif key == "flags":   # after the model name in each processor's block: the first one's
-                    flags = set(value.split())
-                    break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "features": [f for f in FEATURES if f in flags]}
+    from models.hardware import cpu_info
+
+    cpu, flags = cpu_info(cpuinfo)
+    flags = flags or set()
+    return {"cpu": cpu or platform.processor() or None, "cores": os.cpu_count(),
+            "features": [f for f in FEATURES if f in flags]}
