@@ -146,8 +146,8 @@ def report(preset: str, kind: str, stats: dict, full_iterations: int | None = No
 
 def out_of_span(actor: Path, seeds: str, out: Path, quick: bool = False) -> dict:
     """``bench_outofspan.py --seeds SEEDS`` for ``actor`` beside the bundled demo actor (its own process: it
-    fixes the thread count before torch loads); ``{method: mean mm over all sequences}``, the trained actor
-    as ``"trained"``, the demo as ``"demo"``."""
+    fixes the thread count before torch loads): per method its mean and median mm over all sequences, the
+    sequence count and the per-seed means; the trained actor as ``"trained"``, the demo as ``"demo"``."""
     folder = out / f"outofspan_{actor.name}"
     cmd = [sys.executable, str(Path(__file__).with_name("bench_outofspan.py")), "--actor", str(actor),
            "--compare-actor", str(DEMO_ACTOR), "--seeds", seeds, "--configs", "1000:0.5", "--no-bound",
