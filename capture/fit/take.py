@@ -321,15 +321,18 @@ def _window_outputs(state: dict, settings: FitSettings, fit_actor: ActorAtPoints
     fit.load_state_dict(state)
     pose = fit.poses()
     w_lm = fit.coefficients(fit_actor)
+    net_zero = fit.net_is_zero()
     out = {"head_R": pose.head_R, "head_t": pose.head_t, "jaw_R": pose.jaw_R, "jaw_t": pose.jaw_t,
-           "code": fit.codes, "coefficients_landmarks": w_lm, "coefficients_base": fit.coeff0}
+           "code": fit.codes, "coefficients_base": fit.coeff0, **({} if net_zero else {"coefficients_landmarks": w_lm})}
     out = {k: v.detach().cpu().double().numpy() for k, v in out.items()}
+    if net_zero:    # w_j(c) is the base at every point: a view of the (J, E) bases (repeated_rows per frame)
+        out["coefficients_landmarks"] = np.broadcast_to(out["coefficients_base"][:, None, :], tuple(w_lm.shape))
     if K is not None:
         lm3 = pose_face(fit_actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t, w_lm)
         out["landmarks_fit"] = project_points(lm3, K, dist).cpu().double().numpy()
     else:
         out["landmarks_fit"] = np.zeros((J, 0, 2))
-    if fit.net_is_zero():   # F_W at its zero start (2D default): the same coefficients at every vertex, all frames at once
+    if net_zero:   # F_W at its zero start (2D default): the same coefficients at every vertex, all frames at once
         out["vertices"] = pose_face(out_actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t,
                                     fit.coeff0[:, None, :]).cpu().numpy().astype(np.float32, copy=False)
         return out
