@@ -129,6 +129,16 @@ def test_bench_pipeline_quick(tmp_path):
     assert s["live_25_max_lag"] <= 5 and s["live_25_fps_sustained"] > 0 and s["run_peak_rss_mb"] > 0
 
 
+def test_bench_stream_poses_quick():
+    """The span's poses are checked against the whole take's inside the benchmark (it exits otherwise); the
+    span read per window stays bounded while the take grows."""
+    from benchmarks.bench_stream_poses import main
+
+    (row,) = main(["--quick"])
+    assert row["frames"] == 300 and row["windows"] == 13 and not row["whole_extrapolated"]
+    assert row["span_frames_max"] < 300 and row["span_ms_per_window"] > 0
+
+
 def test_bench_calib_quick():
     from benchmarks.bench_calib import main
 

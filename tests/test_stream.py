@@ -295,3 +295,44 @@ def test_detection_groups_ramp_up_and_down(lanes):
             assert sizes[0] == min(2, lanes) and sizes[-1] == 1
         if n >= 4 * lanes:
             assert lanes in sizes and sizes.count(lanes) >= n // lanes - 3
+
+
+@pytest.mark.parametrize("sigma", [0.0, 1.0, 2.5])
+def test_window_poses_from_the_frames_around_them_equal_the_whole_takes(sigma):
+    """A window's initial poses are computed from the raw poses around it (so that a window costs the same
+    however long the take), not from the whole take so far: they must equal the poses of the whole take
+    (interpolated over frames without a pose, smoothed) bit for bit, with gaps at the start, inside and at
+    the end, a single good frame between long gaps, and head turns past 180 degrees (quaternion signs)."""
+    from capture.fit.init import PnPSettings, interpolate_poses, smooth_poses
+    from capture.fit.stream import StreamLandmarkSource
+    from models.quaternion import matrix_from_quat
+
+    rng = np.random.default_rng(11)
+    T = 400
+    angle = np.cumsum(rng.normal(0.05, 0.04, T))          # turns past pi and on: the quaternions change sign
+    axis = np.stack([np.sin(0.01 * np.arange(T)), np.ones(T), 0.3 * np.cos(0.02 * np.arange(T))], 1)
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    R_raw = matrix_from_quat(np.concatenate([axis * np.sin(angle / 2)[:, None], np.cos(angle / 2)[:, None]], 1))
+    t_raw = np.cumsum(rng.normal(0, 1, (T, 3)), 0) + [0, 0, 600]
+    ok = rng.uniform(size=T) > 0.2
+    ok[:7] = False                      # no face at the start,
+    ok[150:190] = False                 # a long gap,
+    ok[170] = True                      # one frame in it,
+    ok[-9:] = False                     # none at the end
+    rows = [(np.zeros((3, 2)), np.ones(3), bool(k), (R_raw[j], t_raw[j]) if k else None) for j, k in enumerate(ok)]
+    pnp = PnPSettings(smooth_sigma_frames=sigma)
+    R_all, t_all = interpolate_poses(np.where(ok[:, None, None], R_raw, np.eye(3)), np.where(ok[:, None], t_raw, 0),
+                                     ok)
+    R_all, t_all = smooth_poses(R_all, t_all, sigma)
+    src = StreamLandmarkSource(iter(rows), np.zeros((3, 3)), np.eye(3), np.zeros(5), pnp, None, None, None, "cpu",
+                               n_landmarks=3)
+    spans = []
+    for s in range(0, T, 13):                     # windows of 17 frames, read as the take arrives
+        e = min(s + 17, T)
+        while not src._ready(e) and src._pull():
+            pass
+        R, t = src._poses(s, e)
+        np.testing.assert_array_equal(R, R_all[s:e], err_msg=f"window {s}")
+        np.testing.assert_array_equal(t, t_all[s:e], err_msg=f"window {s}")
+        spans.append(src._pose_span(s, e))
+    assert max(hi - lo for lo, hi in spans) < 120          # read around each window, not the whole take
