@@ -238,3 +238,50 @@ def test_query_detector_on_video_and_cache_key(tmp_path):
     np.testing.assert_allclose(b.points - a.points, 5.0, atol=1e-4)
     with pytest.raises(CaptureError, match="needs the actor's template points"):
         detect_video(tmp_path / "blobs.avi", det, None, progress=False)
+
+
+def _stacked_track(results, count):
+    """The readable reference: every array stacked from the list at once (NaN where a frame has none)."""
+    def col(name, shape):
+        if all(getattr(r, name) is None for r in results):
+            return None
+        return np.stack([np.full(shape, np.nan) if getattr(r, name) is None else np.asarray(getattr(r, name), float)
+                         for r in results])
+
+    return {"frame_index": np.array([r.frame_index for r in results], np.int64),
+            "points": np.stack([r.points for r in results]), "face_found": np.array([r.face_found for r in results]),
+            "crops": np.array([r.crop for r in results], float), "confidence": col("confidence", (count,)),
+            "sigma_px": col("sigma_px", (count,)), "presence": col("presence", ()), "depth": col("depth", (count,))}
+
+
+@pytest.mark.parametrize("capacity", [0, 5, 40])
+def test_track_builder_equals_the_stacked_results(capacity):
+    """A stream fills the track frame by frame (capture.run.stream): the arrays equal those stacked from the
+    whole list, whether the room made up front is short (grown by doubling), exact or too large; optional
+    arrays that first appear mid-take are NaN before."""
+    from capture.detector.pipeline import TrackBuilder
+    from capture.detector.runtime import FrameLandmarks
+
+    rng = np.random.default_rng(3)
+    count, results = 7, []
+    for j in range(40):
+        found = j % 9 != 4
+        results.append(FrameLandmarks(
+            frame_index=100 + 2 * j, points=rng.normal(size=(count, 2)) if found else np.full((count, 2), np.nan),
+            confidence=rng.uniform(size=count) if j >= 3 else None, sigma_px=None,
+            presence=float(rng.uniform()) if j % 5 == 0 else None, face_found=found,
+            crop=(float(j), 2.0, 50.0 + j, 0.0), depth=rng.normal(size=count) if j > 30 else None))
+    builder = TrackBuilder("det", count, capacity)
+    for r in results:
+        builder.add(r)
+    got, want = builder.track(), _stacked_track(results, count)
+    assert len(got) == 40 and got.detector == "det"
+    np.testing.assert_array_equal(builder.frames(), want["frame_index"])
+    for k, v in want.items():
+        if v is None:
+            assert getattr(got, k) is None, k
+        else:
+            assert getattr(got, k).dtype == v.dtype, k
+            np.testing.assert_array_equal(getattr(got, k), v, err_msg=k)
+    empty = TrackBuilder("det", count, capacity).track()
+    assert empty.points.shape == (0, count, 2) and empty.crops.shape == (0, 4) and empty.confidence is None

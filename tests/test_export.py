@@ -234,36 +234,84 @@ def test_npz_keys_shapes_dtypes(tmp_path, take):
         assert z["landmarks_fit"].shape == (T, L, 2)
 
 
-def test_npz_coefficients_written_in_blocks_equal_the_stacked_rows(tmp_path, take, monkeypatch):
-    """params.npz's coefficients_landmarks is written block by block, each frame held as float32 or as its one
-    repeated row: the file holds what np.stack of the frames' arrays gives (NaN for a frame without them),
-    across block edges, and the archive reads back with allow_pickle=False like any np.savez."""
+def _stacked(rows, dtype, shape):
+    """The readable reference: np.stack of the rows, NaN for a frame without one."""
+    return np.stack([np.full(shape, np.nan) if r is None else np.asarray(r, np.float64) for r in rows]).astype(dtype)
+
+
+def test_npz_rows_spilled_in_blocks_equal_the_stacked_rows(tmp_path, take, monkeypatch):
+    """Both archives' per-frame arrays are held a block of frames at a time and spilled to an unnamed file:
+    the archives hold what np.stack of the frames' arrays gives (NaN for a frame without them; coefficients
+    kept as their one repeated row or as float32), across block edges and with frames that lack an array
+    before the first that has it; they read back with allow_pickle=False like any np.savez, and nothing of the
+    spill is left beside them."""
     from dataclasses import replace
 
     from capture.export import params as params_module
     from capture.fit.records import repeated_rows
 
-    monkeypatch.setattr(params_module._Streamed, "BLOCK", 3)        # T frames in several blocks, the last short
+    monkeypatch.setattr(params_module._Rows, "BLOCK", 3)        # T frames in several blocks, the last short
     rng = np.random.default_rng(5)
-    fits = []
-    for j, f in enumerate(take["fits"]):
+    fits, dets = [], []
+    for j, (f, d) in enumerate(zip(take["fits"], take["dets"])):
         if j % 2:                                              # the 2D default: one row at every landmark
             f = replace(f, coefficients_landmarks=repeated_rows(np.tile(rng.normal(size=E), (L, 1))))
-        fits.append(replace(f, coefficients_landmarks=None) if j == 4 else f)
+        if j == 4:
+            f = replace(f, coefficients_landmarks=None)
+        if j < 4:                                              # no fit yet: the first blocks have nothing
+            f = replace(f, head_R=None, code=None, landmarks_fit=None)
+        fits.append(f)
+        dets.append(None if j in (1, 7) else replace(d, confidence=None) if j == 8 else d)
     writer = params_module.ParamsWriter(tmp_path, take["ctx"])
-    for f, d in zip(fits, take["dets"]):
+    for f, d in zip(fits, dets):
         writer.write(f, None, d)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []          # the spill has no name
     writer.close()
-    want = np.stack([np.full((L, E), np.nan) if f.coefficients_landmarks is None else f.coefficients_landmarks
-                     for f in fits]).astype(np.float32)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["landmarks.npz", "params.npz"]
     with np.load(tmp_path / "params.npz", allow_pickle=False) as z:
-        got = z["coefficients_landmarks"]
-        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(z["coefficients_landmarks"],
+                                      _stacked([f.coefficients_landmarks for f in fits], np.float32, (L, E)))
+        np.testing.assert_array_equal(z["head_R"], _stacked([f.head_R for f in fits], np.float64, (3, 3)))
+        np.testing.assert_array_equal(z["codes"], _stacked([f.code for f in fits], np.float32, (F_CODE,)))
+        np.testing.assert_array_equal(z["head_t_mm"], np.stack([f.head_t for f in fits]))
         np.testing.assert_allclose(z["coefficients_base"][1], fits[1].coefficients_landmarks[0], rtol=1e-6)
+        np.testing.assert_allclose(z["coefficients_base"][2], fits[2].coefficients_landmarks.mean(0), rtol=1e-6)
         assert np.isnan(z["coefficients_base"][4]).all()
-        np.testing.assert_allclose(z["head_t_mm"], np.stack([f.head_t for f in fits]))
-    with pytest.raises(ValueError, match="frame row"):
-        params_module._Streamed([np.zeros((L, E)), np.zeros((L + 1, E))], np.float32, (0, 0))
+        np.testing.assert_array_equal(z["reprojection_rms_px"], [f.reprojection_rms_px for f in fits])
+    with np.load(tmp_path / "landmarks.npz", allow_pickle=False) as z:
+        np.testing.assert_array_equal(z["points"], _stacked([None if d is None else d.points for d in dets],
+                                                            np.float64, (L, 2)))
+        np.testing.assert_array_equal(z["confidence"], _stacked([None if d is None else d.confidence for d in dets],
+                                                                np.float32, (L,)))
+        np.testing.assert_array_equal(z["landmarks_fit"], _stacked([f.landmarks_fit for f in fits], np.float64,
+                                                                   (L, 2)))
+        np.testing.assert_array_equal(z["face_found"], [d is not None and d.face_found for d in dets])
+
+
+def test_npz_rows_of_another_shape_are_refused_when_they_arrive(tmp_path, take):
+    from dataclasses import replace
+
+    from capture.export.params import ParamsWriter
+
+    writer = ParamsWriter(tmp_path, take["ctx"])
+    writer.write(take["fits"][0], None, take["dets"][0])
+    with pytest.raises(ValueError, match=r"frame row 1: expected shape \(5, 4\)"):
+        writer.write(replace(take["fits"][1], coefficients_landmarks=np.zeros((L + 1, E))), None, take["dets"][1])
+    writer.abort()
+
+
+def test_npz_without_any_landmarks_fit_or_confidence_keeps_the_row_shapes(tmp_path, take):
+    from dataclasses import replace
+
+    from capture.export.params import ParamsWriter
+
+    writer = ParamsWriter(tmp_path, take["ctx"])
+    for f, d in zip(take["fits"], take["dets"]):
+        writer.write(replace(f, landmarks_fit=None), None, replace(d, confidence=None))
+    writer.close()
+    with np.load(tmp_path / "landmarks.npz", allow_pickle=False) as z:
+        assert z["landmarks_fit"].shape == (T, L, 2) and np.isnan(z["landmarks_fit"]).all()
+        assert z["confidence"].shape == (T, L) and np.isnan(z["confidence"]).all()
 
 
 # -- overlay ------------------------------------------------------------------------------------

@@ -82,30 +82,73 @@ class LandmarkTrack:
 
 def stack_frames(detector: str, results: Sequence[FrameLandmarks], count: int) -> LandmarkTrack:
     """Stack per-frame results into a :class:`LandmarkTrack`."""
-    t = len(results)
-    has_c = any(r.confidence is not None for r in results)
-    has_s = any(r.sigma_px is not None for r in results)
-    has_p = any(r.presence is not None for r in results)
-    has_d = any(r.depth is not None for r in results)
+    builder = TrackBuilder(detector, count, len(results))
+    for r in results:
+        builder.add(r)
+    return builder.track()
 
-    def col(attr, shape):
-        a = np.full((t,) + shape, np.nan)
-        for i, r in enumerate(results):
-            v = getattr(r, attr)
+
+class TrackBuilder:
+    """A :class:`LandmarkTrack` filled frame by frame (:meth:`add`), so that a stream need not hold the frames'
+    :class:`FrameLandmarks` until the end: the arrays are those :func:`stack_frames` gives for the same
+    results. Room for ``capacity`` frames is made up front (doubled when more come); an optional array
+    (confidence, sigma_px, presence, depth) is made at the first frame that has it, NaN before."""
+
+    OPTIONAL = ("confidence", "sigma_px", "presence", "depth")
+
+    def __init__(self, detector: str, count: int, capacity: int = 0):
+        self.detector, self.count, self.n = detector, int(count), 0
+        self._cap = max(0, int(capacity))
+        self._arrays: dict[str, np.ndarray] = {"frame_index": np.zeros(self._cap, np.int64),
+                                               "face_found": np.zeros(self._cap, bool),
+                                               "crops": np.full((self._cap, 4), np.nan)}
+
+    def __len__(self) -> int:
+        return self.n
+
+    def _row_shape(self, name: str) -> tuple[int, ...]:
+        return () if name == "presence" else (self.count,)
+
+    def _grow(self) -> None:
+        cap = max(64, 2 * self._cap)
+        for name, a in self._arrays.items():
+            fill = name not in ("points", "frame_index", "face_found")
+            b = np.full((cap,) + a.shape[1:], np.nan, a.dtype) if fill else np.zeros((cap,) + a.shape[1:], a.dtype)
+            b[:self.n] = a[:self.n]
+            self._arrays[name] = b
+        self._cap = cap
+
+    def add(self, r: FrameLandmarks) -> None:
+        if self.n == self._cap:
+            self._grow()
+        a, i = self._arrays, self.n
+        if "points" not in a:
+            pts = np.asarray(r.points)
+            a["points"] = np.zeros((self._cap,) + pts.shape, pts.dtype)
+        a["points"][i] = r.points
+        for name in self.OPTIONAL:
+            v = getattr(r, name)
             if v is not None:
-                a[i] = v
-        return a
+                if name not in a:
+                    a[name] = np.full((self._cap,) + self._row_shape(name), np.nan)
+                a[name][i] = v
+        a["frame_index"][i] = r.frame_index
+        a["face_found"][i] = r.face_found
+        a["crops"][i] = r.crop
+        self.n += 1
 
-    return LandmarkTrack(
-        detector=detector,
-        frame_index=np.array([r.frame_index for r in results], np.int64),
-        points=np.stack([r.points for r in results]) if t else np.zeros((0, count, 2)),
-        confidence=col("confidence", (count,)) if has_c else None,
-        sigma_px=col("sigma_px", (count,)) if has_s else None,
-        presence=col("presence", ()) if has_p else None,
-        face_found=np.array([r.face_found for r in results], bool),
-        crops=np.array([r.crop for r in results], np.float64).reshape(t, 4),
-        depth=col("depth", (count,)) if has_d else None)
+    def frames(self) -> np.ndarray:
+        """(n,) int64 frame indices added so far (a view)."""
+        return self._arrays["frame_index"][:self.n]
+
+    def track(self) -> LandmarkTrack:
+        a, n = self._arrays, self.n
+        got = {k: (v if len(v) == n else v[:n]) for k, v in a.items()}   # views; no copy when full
+        return LandmarkTrack(
+            detector=self.detector, frame_index=got["frame_index"],
+            points=got["points"] if "points" in got else np.zeros((0, self.count, 2)),
+            confidence=got.get("confidence"), sigma_px=got.get("sigma_px"), presence=got.get("presence"),
+            face_found=got["face_found"], crops=got["crops"], depth=got.get("depth"))
 
 
 def _segment_path(d: Path, start: int) -> Path:

@@ -40,11 +40,13 @@ fps                        ()           float64    video frame rate
 image_size                 (2,)         int64      width, height in pixels
 =========================  ===========  =========  ==================================================
 
-The rows are accumulated in memory and written once by ``close()`` (atomically); every export run
-rewrites them whole. ``coefficients_landmarks`` is the large one (4 L E bytes per frame, 45 KB at 468
-landmarks and 24 shapes): a frame whose coefficients are one row repeated (the 2D fit while F_W is zero,
-:func:`capture.fit.records.repeated_rows`) is held as that row, and the array is written in blocks of
-frames straight into the archive, so it is never held whole.
+The rows are written atomically by ``close()``; every export run rewrites them whole. While the take goes
+by, each array's rows are held ``BLOCK`` frames at a time and full blocks are spilled to an unnamed
+temporary file beside the outputs (gone when the process ends, however it ends), so the writer's memory
+stays flat in the take's length; ``close()`` copies the blocks into the archive. ``coefficients_landmarks``
+is the large one (4 L E bytes per frame, 45 KB at 468 landmarks and 24 shapes): a frame whose coefficients
+are one row repeated (the 2D fit while F_W is zero, :func:`capture.fit.records.repeated_rows`) is kept as
+that row and expanded only as its block is written.
 """
 
 from __future__ import annotations
@@ -79,48 +81,142 @@ def _stack(rows: list, dtype, tail: tuple[int, ...] | None = None) -> np.ndarray
     return out
 
 
-class _Streamed:
-    """A (T, ...) array of ``dtype`` written to the archive in blocks of ``BLOCK`` frames (:func:`_savez`);
-    ``rows``: per frame an array of the row shape (a read-only broadcast view is fine) or None (NaN)."""
+class _Rows:
+    """The rows of one (T, ...) array of ``dtype``, one per frame as it arrives: an array of the row shape (the
+    first row's; a read-only broadcast view is fine) or None (NaN).
+
+    At most ``BLOCK`` rows are held; each full block is stacked and appended to an unnamed temporary file in
+    ``spill_dir``. :meth:`blocks` gives the array ``np.stack`` of the rows would make (None as NaN), block by
+    block; ``tail`` is the row shape when every row is None."""
 
     BLOCK = 256
 
-    def __init__(self, rows: list, dtype, tail: tuple[int, ...]):
-        self.rows, self.dtype = rows, np.dtype(dtype)
-        self.shape = next((np.shape(r) for r in rows if r is not None), tail)
-        for i, r in enumerate(rows):
-            if r is not None and np.shape(r) != self.shape:
-                raise ValueError(f"frame row {i}: expected shape {self.shape} like earlier frames, got {np.shape(r)}")
+    def __init__(self, dtype, tail: tuple[int, ...], spill_dir: Path):
+        self.dtype, self.tail, self.shape = np.dtype(dtype), tuple(tail), None
+        self._dir, self._file, self._spilled, self._held = Path(spill_dir), None, 0, []
 
-    def blocks(self):
-        for k in range(0, len(self.rows), self.BLOCK):
-            yield _stack(self.rows[k:k + self.BLOCK], self.dtype, self.shape)
+    def __len__(self) -> int:
+        return self._spilled + len(self._held)
+
+    def append(self, row) -> None:
+        if row is not None:
+            shape = tuple(np.shape(row))
+            if self.shape is None:
+                self.shape = shape
+            elif shape != self.shape:
+                raise ValueError(f"frame row {len(self)}: expected shape {self.shape} like earlier frames, got {shape}")
+        self._held.append(row)
+        if len(self._held) >= self.BLOCK and self.shape is not None:
+            if self._file is None:
+                import tempfile
+
+                self._file = tempfile.TemporaryFile(dir=self._dir, prefix=".rows-")
+            self._file.write(memoryview(_stack(self._held, self.dtype, self.shape)).cast("B"))
+            self._spilled += len(self._held)
+            self._held = []
+
+    def row_shape(self, tail: tuple[int, ...] | None = None) -> tuple[int, ...]:
+        return self.shape if self.shape is not None else tuple(self.tail if tail is None else tail)
+
+    def blocks(self, tail: tuple[int, ...] | None = None):
+        """``(k, *row shape)`` blocks of at most ``BLOCK`` rows, in order (``tail``: overrides the row shape
+        given when every row is None)."""
+        shape = self.row_shape(tail)
+        if self._spilled:
+            self._file.flush()
+            self._file.seek(0)
+            size = int(np.prod(shape, dtype=np.int64)) * self.dtype.itemsize
+            for k in range(0, self._spilled, self.BLOCK):
+                n = min(self.BLOCK, self._spilled - k)
+                yield np.frombuffer(self._file.read(n * size), self.dtype).reshape((n,) + shape)
+        if self._held:
+            yield _stack(self._held, self.dtype, shape)
+
+    def array(self, tail: tuple[int, ...] | None = None) -> np.ndarray:
+        parts = list(self.blocks(tail))
+        return np.concatenate(parts) if parts else np.zeros((0,) + self.row_shape(tail), self.dtype)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
 
 
-def _savez(fh, arrays: dict) -> None:
-    """``np.savez(fh, **arrays)`` where a value may also be :class:`_Streamed` (written block by block: the
-    same bytes as its stacked array, which ``np.load`` reads back)."""
+class _Coefficients:
+    """``coefficients_landmarks`` rows (L, E): a frame's repeated row (:func:`capture.fit.records.repeated_rows`)
+    is kept as its one row of E numbers, any other as float32 (L, E); both spilled as :class:`_Rows`."""
+
+    def __init__(self, spill_dir: Path):
+        from array import array
+
+        self.kinds = array("b")       # per frame: 0 none, 1 one row repeated, 2 full
+        self.shape: tuple[int, ...] | None = None
+        self._one = _Rows(np.float32, (0,), spill_dir)
+        self._full = _Rows(np.float32, (0, 0), spill_dir)
+
+    def __len__(self) -> int:
+        return len(self.kinds)
+
+    def append(self, w) -> None:
+        if w is not None:
+            shape = tuple(np.shape(w))
+            if self.shape is None:
+                self.shape = shape
+            elif shape != self.shape:
+                raise ValueError(f"frame row {len(self)}: expected shape {self.shape} like earlier frames, got {shape}")
+        if w is None:
+            self.kinds.append(0)
+        elif is_repeated_rows(w):
+            self._one.append(np.asarray(w)[0])
+            self.kinds.append(1)
+        else:
+            self._full.append(w)
+            self.kinds.append(2)
+
+    @property
+    def dtype(self):
+        return np.dtype(np.float32)
+
+    def row_shape(self, tail=None) -> tuple[int, ...]:
+        return self.shape if self.shape is not None else (0, 0)
+
+    def blocks(self, tail=None):
+        """The (k, L, E) float32 blocks of the stacked rows (NaN for a frame without them)."""
+        shape = self.row_shape()
+        one = (r for b in self._one.blocks(shape[1:]) for r in b)
+        full = (r for b in self._full.blocks(shape) for r in b)
+        for k in range(0, len(self.kinds), _Rows.BLOCK):
+            kinds = self.kinds[k:k + _Rows.BLOCK]
+            out = np.full((len(kinds),) + shape, np.nan, np.float32)
+            for i, kind in enumerate(kinds):
+                if kind:
+                    out[i] = next(one) if kind == 1 else next(full)
+            yield out
+
+    def close(self) -> None:
+        self._one.close()
+        self._full.close()
+
+
+def _savez(fh, arrays: dict, tails: dict | None = None) -> None:
+    """``np.savez(fh, **arrays)`` where a value may also be :class:`_Rows` or :class:`_Coefficients`
+    (written block by block: the same bytes as its stacked array, which ``np.load`` reads back; ``tails``:
+    the row shape of such a value whose rows are all None)."""
     import zipfile
 
+    tails = tails or {}
     with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as z:
         for key, value in arrays.items():
             with z.open(key + ".npy", "w", force_zip64=True) as member:
-                if not isinstance(value, _Streamed):
+                if not isinstance(value, (_Rows, _Coefficients)):
                     np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
                     continue
+                tail = tails.get(key)
                 np.lib.format.write_array_header_1_0(member, {
                     "descr": np.lib.format.dtype_to_descr(value.dtype), "fortran_order": False,
-                    "shape": (len(value.rows),) + tuple(value.shape)})
-                for block in value.blocks():
+                    "shape": (len(value),) + tuple(value.row_shape(tail))})
+                for block in value.blocks(tail):
                     member.write(memoryview(np.ascontiguousarray(block)).cast("B"))
-
-
-def _base(base_rows: list, landmark_rows: list) -> np.ndarray:
-    """(T, E) per-frame base coefficients; a frame without them (fits cached before they were stored)
-    gets the mean over the landmarks of its coefficients, which is the base while F_W is zero."""
-    rows = [b if b is not None else (None if w is None else np.asarray(w, np.float64).reshape(-1, np.shape(w)[-1])
-                                     .mean(0)) for b, w in zip(base_rows, landmark_rows)]
-    return _stack(rows, np.float32, (0,))
 
 
 def _opt(fit, name):
@@ -129,79 +225,91 @@ def _opt(fit, name):
 
 
 class ParamsWriter:
-    """Accumulates per-frame parameters and detections; writes both NPZ files on close."""
+    """Takes per-frame parameters and detections as they come (held in blocks, spilled: :class:`_Rows`);
+    writes both NPZ files on close."""
 
     needs_image = False
 
+    #: the per-frame arrays: key -> (dtype, row shape when no frame has the array)
+    ROWS = {"head_R": (np.float64, (3, 3)), "head_t_mm": (np.float64, (3,)), "jaw_R": (np.float64, (3, 3)),
+            "jaw_t_mm": (np.float64, (3,)), "codes": (np.float32, (0,)), "coefficients_base": (np.float32, (0,)),
+            "points": (np.float64, (0, 2)), "confidence": (np.float32, (0,)), "landmarks_fit": (np.float64, (0, 2))}
+
     def __init__(self, out_dir: Path, ctx: ExportContext):
+        from array import array
+
         self.out_dir, self.ctx = Path(out_dir), ctx
-        self._rows: dict[str, list] = {k: [] for k in (
-            "frame_index", "head_R", "head_t_mm", "jaw_R", "jaw_t_mm", "codes", "coefficients_landmarks",
-            "coefficients_base", "reprojection_rms_px", "status", "points", "confidence", "face_found", "landmarks_fit")}
+        self._rows = {k: _Rows(dtype, tail, self.out_dir) for k, (dtype, tail) in self.ROWS.items()}
+        self._coefficients = _Coefficients(self.out_dir)
+        self._frames, self._status = array("q"), array("b")
+        self._rms, self._found = array("d"), array("b")
         self._any_detection = False
         self._pending: list[PendingFile] = []
 
     def write(self, fit: FrameFitLike, image=None, detection=None) -> None:
         r = self._rows
         frame = int(fit.frame)
-        if r["frame_index"] and frame <= r["frame_index"][-1]:
-            raise ValueError(f"frames must arrive in increasing order: {frame} after {r['frame_index'][-1]}")
-        r["frame_index"].append(frame)
-        r["status"].append(status_code(getattr(fit, "status", "fitted")))
+        if self._frames and frame <= self._frames[-1]:
+            raise ValueError(f"frames must arrive in increasing order: {frame} after {self._frames[-1]}")
+        status = status_code(getattr(fit, "status", "fitted"))
+        w = _opt(fit, "coefficients_landmarks")
+        base = _opt(fit, "coefficients_base")
+        if base is None and w is not None:   # fits cached before the base was stored: while F_W is zero the
+            base = np.asarray(w, np.float64).reshape(-1, np.shape(w)[-1]).mean(0)   # base is the landmark mean
         for key, attr in (("head_R", "head_R"), ("head_t_mm", "head_t"), ("jaw_R", "jaw_R"), ("jaw_t_mm", "jaw_t"),
-                          ("codes", "code"), ("coefficients_base", "coefficients_base"),
-                          ("landmarks_fit", "landmarks_fit")):
+                          ("codes", "code"), ("landmarks_fit", "landmarks_fit")):
             r[key].append(_opt(fit, attr))
-        w = _opt(fit, "coefficients_landmarks")        # held as float32, or as its one row (a view of E numbers)
-        r["coefficients_landmarks"].append(w if w is None or is_repeated_rows(w) else w.astype(np.float32))
-        rms = getattr(fit, "reprojection_rms_px", None)
-        r["reprojection_rms_px"].append(np.nan if rms is None else float(rms))
+        r["coefficients_base"].append(base)
+        self._coefficients.append(w)
         if detection is not None:
             self._any_detection = True
             r["points"].append(np.asarray(detection.points, np.float64))
             conf = getattr(detection, "confidence", None)
             r["confidence"].append(None if conf is None else np.asarray(conf, np.float32))
-            r["face_found"].append(bool(detection.face_found))
+            found = bool(detection.face_found)
         else:
             r["points"].append(None)
             r["confidence"].append(None)
-            r["face_found"].append(False)
+            found = False
+        rms = getattr(fit, "reprojection_rms_px", None)
+        self._frames.append(frame)
+        self._status.append(status)
+        self._rms.append(np.nan if rms is None else float(rms))
+        self._found.append(found)
 
-    def _arrays(self) -> tuple[dict, dict | None]:
+    def _arrays(self) -> tuple[dict, dict | None, dict]:
+        """The archives' arrays (per-frame ones as :class:`_Rows`) and the row shapes of those that no frame
+        has, by archive key."""
         r, ctx = self._rows, self.ctx
-        frame_index = np.asarray(r["frame_index"], np.int64)
+        frame_index = np.asarray(self._frames, np.int64)
         common = {"fps": np.float64(ctx.fps), "image_size": np.asarray(ctx.image_size, np.int64)}
         params = {
             "frame_index": frame_index,
             "time_s": frame_index / float(ctx.fps),
-            "head_R": _stack(r["head_R"], np.float64, (3, 3)),
-            "head_t_mm": _stack(r["head_t_mm"], np.float64, (3,)),
-            "jaw_R": _stack(r["jaw_R"], np.float64, (3, 3)),
-            "jaw_t_mm": _stack(r["jaw_t_mm"], np.float64, (3,)),
-            "codes": _stack(r["codes"], np.float32, (0,)),
-            "coefficients_landmarks": _Streamed(r["coefficients_landmarks"], np.float32, (0, 0)),
-            "coefficients_base": _base(r["coefficients_base"], r["coefficients_landmarks"]),
-            "reprojection_rms_px": np.asarray(r["reprojection_rms_px"], np.float64),
-            "status": np.asarray(r["status"], np.int8),
+            "head_R": r["head_R"], "head_t_mm": r["head_t_mm"], "jaw_R": r["jaw_R"], "jaw_t_mm": r["jaw_t_mm"],
+            "codes": r["codes"],
+            "coefficients_landmarks": self._coefficients,
+            "coefficients_base": r["coefficients_base"],
+            "reprojection_rms_px": np.asarray(self._rms, np.float64),
+            "status": np.asarray(self._status, np.int8),
             "status_names": np.asarray(STATUSES, dtype="<U7"),
             **common,
         }
         if not self._any_detection:
-            return params, None
-        points = _stack(r["points"], np.float64, (0, 2))
-        n_lm = points.shape[1]
+            return params, None, {}
+        n_lm = r["points"].row_shape()[0]
         landmarks = {
             "frame_index": frame_index,
-            "points": points,
-            "confidence": _stack(r["confidence"], np.float32, (n_lm,)),
-            "face_found": np.asarray(r["face_found"], bool),
-            "landmarks_fit": _stack(r["landmarks_fit"], np.float64, (n_lm, 2)),
+            "points": r["points"],
+            "confidence": r["confidence"],
+            "face_found": np.asarray(self._found, np.int8).astype(bool),
+            "landmarks_fit": r["landmarks_fit"],
             **common,
         }
-        return params, landmarks
+        return params, landmarks, {"confidence": (n_lm,), "landmarks_fit": (n_lm, 2)}
 
     def close(self) -> list[Path]:
-        params, landmarks = self._arrays()
+        params, landmarks, tails = self._arrays()
         out = []
         try:
             for name, arrays in ((PARAMS_FILE, params), (LANDMARKS_FILE, landmarks)):
@@ -210,15 +318,23 @@ class ParamsWriter:
                 pending = PendingFile(self.out_dir / name)
                 self._pending.append(pending)
                 with open(pending.tmp, "wb") as fh:
-                    _savez(fh, arrays)
+                    _savez(fh, arrays, tails if arrays is landmarks else None)
             for p in self._pending:
                 out.append(p.commit())
         except BaseException:
             self.abort()
             raise
+        finally:
+            self._release()
         return out
+
+    def _release(self) -> None:
+        for rows in self._rows.values():
+            rows.close()
+        self._coefficients.close()
 
     def abort(self) -> None:
         for p in self._pending:
             p.discard()
         self._pending.clear()
+        self._release()

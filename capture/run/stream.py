@@ -42,6 +42,7 @@ import queue
 import shutil
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -256,7 +257,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     ``detection_factory(frame_landmarks)`` gives what the exporters read beside a fit.
     Returns the track, the finished fit folder and the stage log (detect, fit, export).
     """
-    from capture.detector.pipeline import _segment_path, _write_segment, stack_frames
+    from capture.detector.pipeline import TrackBuilder, _segment_path, _write_segment, stack_frames
     from capture.detector.runtime import Lane, TrackState
     from capture.export import EXPORTERS, open_exporters
     from capture.export.overlay_draw import confident_rms
@@ -282,7 +283,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     landmarks = pipe_line.pipe(LANDMARK_QUEUE_FRAMES)
     fits = pipe_line.pipe(QUEUE_FRAMES)
     clocks = {k: StageClock() for k in ("decode", "detect", "feed", "fit", "export")}
-    results: list = []                          # FrameLandmarks of the requested frames, in order
+    track_rows = TrackBuilder(det.name, det.count, n_frames)   # the requested frames' landmarks, in order
+    unexported: deque = deque()                 # their FrameLandmarks until exported (bounded by the queues)
     stats = {"detected": 0, "cached": sum(len(v) for v in plan.cached.values())}
 
     # fit folder while the take runs: keyed by everything but the landmarks
@@ -338,10 +340,11 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                 seg_results = done.pop(s)
             for r in seg_results:
                 if r.frame_index in wanted:
-                    results.append(r)
+                    track_rows.add(r)
+                    unexported.append(r)
                     landmarks.put(r)
-        if frames is not None and len(results) < n_frames:   # as detect_video: the header promised more
-            have = {int(r.frame_index) for r in results}
+        if frames is not None and len(track_rows) < n_frames:   # as detect_video: the header promised more
+            have = set(track_rows.frames().tolist())
             lost = next(i for i in plan.wanted if i not in have)
             raise CaptureError(f"video {Path(cfg.video).name} ends before frame {lost} (its header says "
                                f"{plan.info.frame_count} frames); request frames below {lost}")
@@ -472,7 +475,6 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
             thumbs.start()
             source = iter(reader.frames(plan.wanted)) if reader is not None else None
             try:
-                by_index = {}
                 for ff in fits:
                     t0 = time.perf_counter()
                     image = None
@@ -480,7 +482,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                         if int(index) == int(ff.frame):
                             image = img
                             break
-                    detection = detection_factory(_lookup(results, by_index, int(ff.frame)))
+                    detection = detection_factory(_take_landmarks(unexported, int(ff.frame)))
                     writers.write(ff, image, detection)
                     series.add(ff)         # the report's series, while the fit works on (not read back)
                     with errors_cv:
@@ -513,7 +515,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     clocks["export"].finished = time.perf_counter() - pipe_line.t0
 
     # the take is done: the track, the fit under its key, the export's state
-    track = stack_frames(det.name, results, det.count)
+    track = track_rows.track()
     track.fps, track.image_size = plan.info.fps, (plan.info.width, plan.info.height)
     track.cached_frames, track.detected_frames = stats["cached"], stats["detected"]
     _save_track(track, out / LANDMARKS)
@@ -551,12 +553,14 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     return StreamResult(track, final, log, series, worst.images)
 
 
-def _lookup(results: list, cache: dict, frame: int):
-    """The FrameLandmarks of ``frame`` (results grow in frame order; older ones are indexed once)."""
-    if frame not in cache:
-        for r in results[len(cache):]:
-            cache[int(r.frame_index)] = r
-    return cache[frame]
+def _take_landmarks(unexported: deque, frame: int):
+    """The FrameLandmarks of ``frame``, taken off the left of ``unexported`` (detected frames in order; the
+    fits arrive in the same order, each frame once), with any older ones that were not exported."""
+    while unexported and int(unexported[0].frame_index) < frame:
+        unexported.popleft()
+    if not unexported or int(unexported[0].frame_index) != frame:
+        raise RuntimeError(f"the fit returned frame {frame}, which detection did not give it")
+    return unexported.popleft()
 
 
 def _save_track(track, path: Path) -> None:
