@@ -81,6 +81,16 @@ def _stack(rows: list, dtype, tail: tuple[int, ...] | None = None) -> np.ndarray
     return out
 
 
+def _same_shape(shape: tuple[int, ...] | None, row, index: int) -> tuple[int, ...] | None:
+    """The rows' shape so far after frame row ``index`` (the first row's); ValueError for a row of another."""
+    if row is None:
+        return shape
+    got = tuple(np.shape(row))
+    if shape is not None and got != shape:
+        raise ValueError(f"frame row {index}: expected shape {shape} like earlier frames, got {got}")
+    return got
+
+
 class _Rows:
     """The rows of one (T, ...) array of ``dtype``, one per frame as it arrives: an array of the row shape (the
     first row's; a read-only broadcast view is fine) or None (NaN).
@@ -99,12 +109,7 @@ class _Rows:
         return self._spilled + len(self._held)
 
     def append(self, row) -> None:
-        if row is not None:
-            shape = tuple(np.shape(row))
-            if self.shape is None:
-                self.shape = shape
-            elif shape != self.shape:
-                raise ValueError(f"frame row {len(self)}: expected shape {self.shape} like earlier frames, got {shape}")
+        self.shape = _same_shape(self.shape, row, len(self))
         self._held.append(row)
         if len(self._held) >= self.BLOCK and self.shape is not None:
             if self._file is None:
@@ -132,10 +137,6 @@ class _Rows:
         if self._held:
             yield _stack(self._held, self.dtype, shape)
 
-    def array(self, tail: tuple[int, ...] | None = None) -> np.ndarray:
-        parts = list(self.blocks(tail))
-        return np.concatenate(parts) if parts else np.zeros((0,) + self.row_shape(tail), self.dtype)
-
     def close(self) -> None:
         if self._file is not None:
             self._file.close()
@@ -158,12 +159,7 @@ class _Coefficients:
         return len(self.kinds)
 
     def append(self, w) -> None:
-        if w is not None:
-            shape = tuple(np.shape(w))
-            if self.shape is None:
-                self.shape = shape
-            elif shape != self.shape:
-                raise ValueError(f"frame row {len(self)}: expected shape {self.shape} like earlier frames, got {shape}")
+        self.shape = _same_shape(self.shape, w, len(self))
         if w is None:
             self.kinds.append(0)
         elif is_repeated_rows(w):

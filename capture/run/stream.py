@@ -21,8 +21,11 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
 Queues hold at most :data:`QUEUE_FRAMES` frames; the decoder works at most one group of detection
 segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector and frames are
 decoded into buffers that the detector gives back (:class:`capture.io.video.FramePool`; other large
-blocks are allocated off the heap, :mod:`capture.io.heap`), so memory stays flat in the take's length
-(``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
+blocks are allocated off the heap, :mod:`capture.io.heap`). What a run keeps of every frame is small:
+its landmarks in the track (:class:`capture.detector.pipeline.TrackBuilder`, about 11 KB a frame at 468
+landmarks; each frame's ``FrameLandmarks`` is let go once exported), the NPZ writers' rows spilled to
+disk a block at a time (:mod:`capture.export.params`), a few numbers for the report; about 16 KB a frame
+in all (``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
 event: an error or an interrupt in any stage stops all of them (a fit window being solved finishes
 first, and is kept), and the error is raised in the main thread (where SIGTERM and Ctrl-C arrive; the
 fit process ignores them and stops when the parent tells it).
