@@ -74,6 +74,55 @@ def test_the_worker_gives_the_fits_of_this_process(take, in_process):
         assert not worker._proc.is_alive()
 
 
+@pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
+def test_back_pressure_bounds_the_rows_waiting_and_never_stalls_the_fit(take, in_process):
+    """With max_backlog the feed waits while that many rows were sent and not read, so a slow consumer of the
+    fits (the export of a long take) does not let every row of the take pile up in the fit's inbox. A fit
+    that reads rows without giving fits (frames without a face: no window can be solved before a pose
+    exists beyond it) says how many it has read, so a gap longer than the backlog does not stall it; the
+    fits are the same, bit for bit."""
+    import time
+
+    from capture.fit.process import FitWorker
+    from capture.fit.stream import fit_take_stream
+    from capture.fit.take import WindowedFit
+
+    actor, tp, cam, rows, _ = take
+    rows = [(p, w, f and not 2 <= j < 9) for j, (p, w, f) in enumerate(rows * 3)]   # a gap of 7 frames
+    how = WindowedFit("default", window=3, overlap=1)
+    ref = list(fit_take_stream(actor, iter(rows), tp, cam, how))
+    worker = FitWorker(actor, tp, cam, how, in_process=in_process)
+    backlog = []
+    send = worker._send
+
+    def counted(item):
+        if not isinstance(item, str):            # a row (not the end of the take)
+            backlog.append(worker.rows_sent - worker.rows_read)
+        send(item)
+
+    worker._send = counted
+    stalled = threading.Event()                   # a stalled fit ends the test (FitStopped) instead of hanging it
+    timer = threading.Timer(120, stalled.set)
+    timer.start()
+    feeder = threading.Thread(target=worker.feed, args=(iter(rows), stalled, 2), daemon=True)
+    feeder.start()
+    got = []
+    try:
+        for ff, _ in worker.results(stalled):
+            got.append(ff)
+            time.sleep(0.02)                      # a slow export
+    finally:
+        timer.cancel()
+        feeder.join(30)
+        worker.close()
+    assert not feeder.is_alive()
+    assert len(backlog) == len(rows) and max(backlog) == 2       # waited: never more than 2 unread
+    assert [int(f.frame) for f in got] == list(range(len(rows)))
+    for a, b in zip(got, ref):
+        assert a.status == b.status
+        np.testing.assert_array_equal(a.vertices, b.vertices, err_msg=f"frame {a.frame}")
+
+
 def test_an_error_of_the_fit_reaches_the_parent_with_its_type(take):
     """No frame has a face: the fit process fails (no head pose anywhere) and the parent raises that error,
     with its type, its message and, as a note for the log, where in the fit process it happened."""

@@ -21,8 +21,15 @@ Protocol::
                       END (or ABORT)
     child -> parent   on the ready pipe, the PnP model points (the actor at the landmarks), then BUILT
                       once the networks are evaluated at every template vertex; on its own pipe,
-                      ("fit", FrameFit, rows read so far) per frame, then ("end", timings, the actor's
-                      FaceRig, which the parent adopts), ("error", exception) or ("aborted",)
+                      ("fit", FrameFit, rows read so far) per frame, ("read", rows read so far) when it
+                      waits for rows, then ("end", timings, the actor's FaceRig, which the parent
+                      adopts), ("error", exception) or ("aborted",)
+
+Back-pressure: :meth:`FitWorker.feed` waits while more than its ``max_backlog`` rows were sent and not yet
+read by the fit (as the fit last said), so that when the fit (or the export after it) is slower than
+detection the rows do not pile up in the child's inbox for the rest of the take. It cannot stall the fit:
+a fit that waits for rows says how many it has read first, over a long stretch without a face too (where
+it reads rows without giving fits until a pose exists beyond its window).
 
 Signals: the child ignores SIGINT and SIGTERM, which the parent handles (Ctrl-C reaches the whole process
 group): the parent then sends ABORT and the child stops after the window it is solving (that window is
@@ -89,8 +96,13 @@ def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_po
 
     threading.Thread(target=receive, name="capture-fit-rows", daemon=True).start()
 
+    reported = [0]
+
     def rows():
         while True:
+            if inbox.empty() and read[0] != reported[0]:   # about to wait for rows: say how many were read,
+                out_conn.send(("read", read[0]))             # so that the parent's back-pressure lets more come
+                reported[0] = read[0]
             item = inbox.get()
             if isinstance(item, str):
                 if item == END:
@@ -112,6 +124,7 @@ def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_po
             now = time.perf_counter()
             busy += now - t_last
             out_conn.send(("fit", ff, read[0]))
+            reported[0] = read[0]
             t_last = time.perf_counter()
         busy += time.perf_counter() - t_last
         timings["busy_s"] = max(0.0, busy - timings.get("wait_s", 0.0))
@@ -185,6 +198,9 @@ class FitWorker:
         self._pnp_s = 0.0
         self._send_lock = threading.Lock()
         self._sent_end = False
+        self.rows_sent = 0
+        self.rows_read = 0      # as the fit last said (with a fit, or when it waits for rows)
+        self._progress = threading.Condition()
         args = (self._rows_child, self._out_child, self._ready_child, (self._rows, self._out, self._ready), actor,
                 template_points, camera, how, causal, threads, not self.in_process)
         if self.in_process:
@@ -202,10 +218,28 @@ class FitWorker:
                 self._rows.send(item)
                 if isinstance(item, str):
                     self._sent_end = True
+                else:
+                    self.rows_sent += 1
 
-    def feed(self, rows: Iterable, stop: threading.Event | None = None) -> None:
+    def _heard(self, rows_read: int) -> None:
+        with self._progress:
+            self.rows_read = max(self.rows_read, int(rows_read))
+            self._progress.notify_all()
+
+    def _wait_backlog(self, max_backlog: int, stop: threading.Event | None) -> None:
+        """Wait while more than ``max_backlog`` rows were sent and not read (see the module docstring)."""
+        with self._progress:
+            while self.rows_sent - self.rows_read > max_backlog:
+                if stop is not None and stop.is_set():
+                    raise FitStopped
+                if not self._alive():       # results() says why
+                    return
+                self._progress.wait(0.1)
+
+    def feed(self, rows: Iterable, stop: threading.Event | None = None, max_backlog: int | None = None) -> None:
         """Send every row of ``rows``, then the end of the take; an error in ``rows`` aborts the fit (and is
-        raised here).
+        raised here). ``max_backlog``: wait before a row while more than that many were sent and not yet read
+        by the fit (back-pressure; the consumer of :meth:`results` must go on reading them meanwhile).
 
         Each row goes with its head pose by PnP (:class:`capture.fit.init.PnPChain`, the fit's own, run
         here: it is a quarter of the fit's time, and this process has time beside decoding and detection).
@@ -221,6 +255,8 @@ class FitWorker:
                     chain = PnPChain(self._wait_model_points(stop), self._camera.K, self._camera.dist,
                                      self._pnp_settings)
                 p, w = clean_row(points, weights, found, self._n_landmarks, j)
+                if max_backlog is not None:
+                    self._wait_backlog(max_backlog, stop)
                 self._send((p, w, bool(found), chain.next(p, w)))
                 self._pnp_s = chain.seconds
         except BaseException:
@@ -267,7 +303,10 @@ class FitWorker:
                 msg = self._out.recv()
             except EOFError:
                 raise RuntimeError(f"the fit process ended unexpectedly (exit code {self._exitcode()})") from None
-            if msg[0] == "fit":
+            if msg[0] == "read":
+                self._heard(msg[1])
+            elif msg[0] == "fit":
+                self._heard(msg[2])
                 yield msg[1], msg[2]
             elif msg[0] == "end":
                 self.timings = {**msg[1], "pnp_s": self._pnp_s}

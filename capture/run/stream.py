@@ -18,7 +18,9 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
     worst-frames    once detection is done: a VideoReader that follows the exported frames and keeps
     thread          the images of the worst so far for report.html (report_html.WorstFrameImages)
 
-Queues hold at most :data:`QUEUE_FRAMES` frames; the decoder works at most one group of detection
+Queues hold at most :data:`QUEUE_FRAMES` frames, the fit process at most :data:`FIT_BACKLOG_FRAMES` rows
+not yet read (detection waits when the fit or the export falls behind: :meth:`FitWorker.feed`'s
+back-pressure); the decoder works at most one group of detection
 segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector and frames are
 decoded into buffers that the detector gives back (:class:`capture.io.video.FramePool`; other large
 blocks are allocated off the heap, :mod:`capture.io.heap`). What a run keeps of every frame is small:
@@ -62,6 +64,8 @@ from capture.run.store import array_digest, digest, read_json, save_frame_fits
 QUEUE_FRAMES = 64              # fits waiting for the export
 LANDMARK_QUEUE_FRAMES = 256    # landmarks waiting for the fit (a few KB each): detection goes on while the
                                # fit process imports torch and builds the actor's networks (~1.7 s)
+FIT_BACKLOG_FRAMES = 512       # rows sent to the fit process and not yet read by it (~11 KB each): when the
+                               # fit or the export is slower than detection, detection waits (FitWorker.feed)
 DECODE_BUDGET_BYTES = 256 << 20  # decoded frames of one group of detection segments
 _END = object()
 
@@ -287,7 +291,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     fits = pipe_line.pipe(QUEUE_FRAMES)
     clocks = {k: StageClock() for k in ("decode", "detect", "feed", "fit", "export")}
     track_rows = TrackBuilder(det.name, det.count, n_frames)   # the requested frames' landmarks, in order
-    unexported: deque = deque()                 # their FrameLandmarks until exported (bounded by the queues)
+    unexported: deque = deque()                 # their FrameLandmarks until exported (bounded: FIT_BACKLOG_FRAMES)
     stats = {"detected": 0, "cached": sum(len(v) for v in plan.cached.values())}
 
     # fit folder while the take runs: keyed by everything but the landmarks
@@ -383,7 +387,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
 
     def feed():
         try:
-            worker.feed(rows(), pipe_line.stop)
+            worker.feed(rows(), pipe_line.stop, max_backlog=FIT_BACKLOG_FRAMES)
         except FitStopped:
             raise _Stopped from None
 
