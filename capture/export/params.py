@@ -147,6 +147,8 @@ class _Coefficients:
     """``coefficients_landmarks`` rows (L, E): a frame's repeated row (:func:`capture.fit.records.repeated_rows`)
     is kept as its one row of E numbers, any other as float32 (L, E); both spilled as :class:`_Rows`."""
 
+    dtype = np.dtype(np.float32)
+
     def __init__(self, spill_dir: Path):
         from array import array
 
@@ -168,10 +170,6 @@ class _Coefficients:
         else:
             self._full.append(w)
             self.kinds.append(2)
-
-    @property
-    def dtype(self):
-        return np.dtype(np.float32)
 
     def row_shape(self, tail=None) -> tuple[int, ...]:
         return self.shape if self.shape is not None else (0, 0)

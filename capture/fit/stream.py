@@ -141,11 +141,11 @@ class StreamLandmarkSource:
         """Frames ``[lo, hi)`` whose raw poses decide the poses of ``[s, e)`` as on the whole take: the
         smoothing reads ``[s - r, e - 1 + r]``, and the interpolation there reads only the good frames that
         bracket it, so the span runs from the last good frame before it (or the take's start) to the first
-        good frame after it (or the frames received), with two good frames at least. Each window then costs the same however long the take
-        (the whole prefix made a take of 36,000 frames cost minutes). The poses equal the whole take's bit
-        for bit: Gaussian weights and slerps are per frame, and the quaternions' sign alignment, started
-        at ``lo`` instead of 0, gives the same quaternions or all of them negated, which smooth to the
-        negated mean and so to the same matrices."""
+        good frame after it (or the frames received), with two good frames at least. Each window then costs
+        the same however long the take (the whole prefix made a take of 36,000 frames cost minutes). The
+        poses equal the whole take's bit for bit: Gaussian weights and slerps are per frame, and the
+        quaternions' sign alignment, started at ``lo`` instead of 0, gives the same quaternions or all of
+        them negated, which smooth to the negated mean and so to the same matrices."""
         g, first, last = self.good, s - self.radius, e - 1 + self.radius
         i0 = bisect.bisect_left(g, first) - 1       # the last good frame before them (-1: none)
         i1 = bisect.bisect_right(g, last)           # the first good frame after them (len: none yet)
