@@ -339,6 +339,56 @@ def test_overlay_video(tmp_path, take):
     assert np.abs(frames[8][40:, :].astype(int) - background(8)[40:, :].astype(int)).sum(-1).max() > 60
 
 
+def test_overlay_drawn_by_threads_is_the_one_drawn_in_order(tmp_path, take, monkeypatch):
+    """Frames drawn by 3 threads ahead of the encoder reach it as those drawn one by one in the caller's
+    thread, in order and bit for bit, though the caller refills one image buffer for every frame. (The
+    encoded videos are not compared: libx264 with its own threads does not repeat itself to the bit.)"""
+    import threading
+
+    from capture.export.overlay import OverlayWriter
+
+    encoded: dict[int, list] = {}
+    original = OverlayWriter._encode
+
+    def record(self, out):
+        encoded[self.test_threads].append(out.copy())
+        original(self, out)
+
+    monkeypatch.setattr(OverlayWriter, "_encode", record)
+    for threads in (1, 3):
+        out = tmp_path / str(threads)
+        out.mkdir()
+        writer = OverlayWriter(out, take["ctx"], threads=threads)
+        writer.test_threads, encoded[threads] = threads, []
+        buf = np.empty((H, W, 3), np.uint8)
+        for j, (fit, det) in enumerate(zip(take["fits"], take["dets"])):
+            buf[...] = background(j)
+            writer.write(fit, buf, det)
+            if threads > 1:
+                assert len(writer._drawing) <= 2 * threads
+                assert len(encoded[threads]) == max(0, j + 1 - 2 * threads)   # drawn ahead, not all held
+        (path,) = writer.close()
+        assert path.is_file() and temp_files(out) == []
+    assert len(encoded[1]) == len(encoded[3]) == T
+    for a, b in zip(encoded[1], encoded[3]):
+        np.testing.assert_array_equal(a, b)
+    assert not any(np.array_equal(a, b) for a, b in zip(encoded[1], encoded[1][1:]))   # frames differ
+    assert not [t for t in threading.enumerate() if t.name.startswith("overlay-draw")]
+
+
+def test_overlay_abort_while_drawing_leaves_nothing(tmp_path, take):
+    import threading
+
+    from capture.export.overlay import OverlayWriter
+
+    writer = OverlayWriter(tmp_path, take["ctx"], threads=2)
+    for j, (fit, det) in enumerate(zip(take["fits"][:5], take["dets"])):
+        writer.write(fit, background(j), det)
+    writer.abort()
+    assert list(tmp_path.iterdir()) == []
+    assert not [t for t in threading.enumerate() if t.name.startswith("overlay-draw")]
+
+
 def test_overlay_needs_images(tmp_path, take):
     writer = EXPORTERS["overlay"].open(tmp_path, take["ctx"])
     with pytest.raises(ValueError, match="needs the video frame"):

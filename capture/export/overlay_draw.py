@@ -154,9 +154,14 @@ class FrameRenderer:
         f = self.topo.faces
         px = project(v, self.camera)
         ok_v = np.isfinite(px).all(1) & (v[:, 2] > 1e-3) & (np.abs(px) < 1e6).all(1)
-        tri = v[f].astype(np.float64)
-        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        front = (np.einsum("ij,ij->i", normal, tri.mean(1)) < 0) & ok_v[f].all(1)
+        f0, f1, f2 = f[:, 0], f[:, 1], f[:, 2]
+        v0 = v[f0]
+        e1, e2 = v[f1] - v0, v[f2] - v0
+        normal = np.stack([e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1], e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
+                           e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]], 1)    # (F, 3): e1 x e2
+        # facing the camera (at the origin): the normal points back at it; columns, not reductions over 3
+        front = ((normal[:, 0] * v0[:, 0] + normal[:, 1] * v0[:, 1] + normal[:, 2] * v0[:, 2] < 0)
+                 & ok_v[f0] & ok_v[f1] & ok_v[f2])
         if not front.any():
             return
         used = np.zeros(len(v), bool)
@@ -200,14 +205,18 @@ class FrameRenderer:
 
         E = self.topo.edges
         ef = self.topo.edge_faces
-        ok_e = ok_v[E].all(1)
-        mid2 = 0.5 * (px[E[:, 0]] + px[E[:, 1]])
-        midz = 0.5 * (v[E[:, 0], 2] + v[E[:, 1], 2])
+
+        def seen(eids: np.ndarray) -> np.ndarray:
+            """Of the edges ``eids``, those with both ends projected and their midpoint not hidden."""
+            a, b = E[eids, 0], E[eids, 1]
+            eids = eids[ok_v[a] & ok_v[b]]
+            a, b = E[eids, 0], E[eids, 1]
+            return eids[visible(0.5 * (px[a] + px[b]), 0.5 * (v[a, 2] + v[b, 2]))]
+
         if "wireframe" in self.layers:
             on = np.zeros(len(self.topo.edges), bool)
             on[self.topo.face_edges[front].ravel()] = True
-            eids = np.flatnonzero(on)
-            eids = eids[ok_e[eids] & visible(mid2[eids], midz[eids])]
+            eids = seen(np.flatnonzero(on))
             roi = out[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1]          # the face's box only (cheap at 4K)
             layer = roi.copy()
             _segments(layer, px - lo, E[eids], WIRE_BGR, 1)
@@ -217,8 +226,7 @@ class FrameRenderer:
             fb = np.where(ef[:, 1] >= 0, front[ef[:, 1]], False)
             two = ef[:, 1] >= 0
             sil = (two & (fa != fb)) | (~two & fa)       # occluding contour, or the border seen from the front
-            sel = np.flatnonzero(sil & ok_e)
-            sel = sel[visible(mid2[sel], midz[sel])]
+            sel = seen(np.flatnonzero(sil))
             rim = self.topo.near_opening[E[sel]].any(1)  # the lids' and lips' own occluding rims: features
             _segments(out, px, E[sel[~rim]], SILHOUETTE_BGR, self.line)
             _segments(out, px, E[sel[rim]], FEATURE_BGR, self.line)
@@ -335,7 +343,12 @@ class FrameRenderer:
                 x += cv2.getTextSize(label, font, 0.8 * fs, th)[0][0] + pad
 
     def render(self, image: np.ndarray, fit, detection=None, vertices: np.ndarray | None = None) -> np.ndarray:
-        out = np.array(image, dtype=np.uint8, copy=True)
+        """The overlay of one frame on a copy of ``image`` (BGR uint8 (H, W, 3))."""
+        return self.draw_on(np.array(image, dtype=np.uint8, copy=True), fit, detection, vertices)
+
+    def draw_on(self, out: np.ndarray, fit, detection=None, vertices: np.ndarray | None = None) -> np.ndarray:
+        """Draw the overlay of one frame into ``out`` (BGR uint8 (H, W, 3), changed in place) and return it.
+        Reads nothing but its arguments and the take's constants, so frames can be drawn in parallel."""
         if vertices is not None and ({"mesh", "wireframe", "contours"} & self.layers):
             self._mesh(out, np.asarray(vertices, np.float64))
         if detection is not None and "landmarks" in self.layers:
