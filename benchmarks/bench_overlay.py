@@ -7,6 +7,8 @@ frame, one thread:
 
 * ``draw``: :class:`capture.export.overlay_draw.FrameRenderer` with the default layers (shaded mesh by
   the project's rasteriser, contours, landmarks, header), and with ``wireframe,contours,header``;
+* ``draw, 2 threads``: the default layers drawn by two threads, as ``OverlayWriter`` does (frames per
+  second of both, as ms per frame);
 * ``baseline``: the overlay shipped before issue 18 (every triangle edge of the front-facing mesh
   blended orange, each landmark a green disk), a plain reference in the same run;
 * ``encode``: PyAV libx264 ``veryfast`` yuv420p, as the writer does.
@@ -116,6 +118,13 @@ def bench_size(size, frames, rig, faces, features) -> dict:
         for img, fit, det in data:
             last = ren.render(img, fit, det, fit.vertices)
         res[name] = 1000 * (time.perf_counter() - t) / frames
+        if name == "draw_default_ms":
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(2) as pool:
+                t = time.perf_counter()
+                list(pool.map(lambda d: ren.render(d[0], d[1], d[2], d[1].vertices), data))
+                res["draw_default_2_threads_ms"] = 1000 * (time.perf_counter() - t) / frames
     t = time.perf_counter()
     for img, fit, det in data:
         baseline_draw(img, fit, det, topo.faces, topo.edges, topo.face_edges, cam)
@@ -165,10 +174,11 @@ def main(argv=None) -> dict:
     rows = [bench_size(tuple(int(x) for x in s.split("x")), frames, rig, faces, features) for s in sizes]
     load = os.getloadavg()
     print(f"overlay, ms per frame (one thread; load average {load[0]:.1f} on {os.cpu_count()} cores)")
-    print(f"{'size':>10} {'draw default':>13} {'draw wireframe':>15} {'baseline draw':>14} {'encode':>8}")
+    print(f"{'size':>10} {'draw default':>13} {'2 threads':>10} {'draw wireframe':>15} {'baseline draw':>14} "
+          f"{'encode':>8}")
     for r in rows:
-        print(f"{r['size']:>10} {r['draw_default_ms']:13.1f} {r['draw_wireframe_ms']:15.1f} "
-              f"{r['baseline_draw_ms']:14.1f} {r['encode_ms']:8.1f}")
+        print(f"{r['size']:>10} {r['draw_default_ms']:13.1f} {r['draw_default_2_threads_ms']:10.1f} "
+              f"{r['draw_wireframe_ms']:15.1f} {r['baseline_draw_ms']:14.1f} {r['encode_ms']:8.1f}")
     result = {"rows": rows, "load_average": load[0], "cpus": os.cpu_count()}
     if not args.quick:
         from capture.io.atomic import write_text

@@ -234,8 +234,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results"))
     ap.add_argument("--no-live", action="store_true")
     ap.add_argument("--live-fps", default="25,30,40", help="paces of capture live's file source (frames/s)")
-    ap.add_argument("--memory", action="store_true", help="only: peak memory of capture run at 1920x1080 (all "
-                    "exports but the overlay) on the take and on it played 4 times")
+    ap.add_argument("--memory", action="store_true", help="only: peak memory of capture run at 1920x1080 (by "
+                    "default all exports but the overlay) on the take and on it played 4 times")
+    ap.add_argument("--formats", help="capture run --formats (default npz,usd; with --memory obj,usd,npz); "
+                    "capture run's own default is obj,usd,npz,overlay")
     ap.add_argument("--quick", action="store_true", help="check that it runs: 24 frames at 320x240, 1 repeat")
     ap.add_argument("--source", default="yuv420p", choices=("yuv420p", "synth"),
                     help="the video: the synthetic take re-encoded in 4:2:0 as cameras record (default), or "
@@ -263,13 +265,14 @@ def _measure(args, work: Path) -> dict:
     s = setup(work, args.frames, args.size, args.source)
     py = sys.executable
     if args.memory:
-        return _memory(s, work)
+        return _memory(s, work, args.formats or "obj,usd,npz")
     both = set(range(min(2, os.cpu_count() or 1)))
     rows: dict[str, list] = {}
 
     def run_cmd(out: Path) -> list[str]:
         return [py, "-m", "capture.cli", "run", str(s["video"]), "--actor", str(s["actor"]), "--camera",
-                str(s["camera"]), "--detector", str(s["detector"]), "--formats", "npz,usd", "--out", str(out),
+                str(s["camera"]), "--detector", str(s["detector"]), "--formats", args.formats or "npz,usd",
+                "--out", str(out),
                 "--no-progress", "--overwrite"]
 
     loads = [os.getloadavg()]
@@ -346,19 +349,20 @@ def _fit_peak(report: dict) -> float | None:
     return next((st.get("peak_rss_mb") for st in report["stages"] if st["stage"] == "fit"), None)
 
 
-def _memory(s: dict, work: Path) -> dict:
+def _memory(s: dict, work: Path, formats: str) -> dict:
     rows = []
     for repeat in (1, 4):
         video = upscaled(s["video"], work / f"take_1080p_x{repeat}.mp4", (1920, 1080), repeat)
         out = work / f"mem_{repeat}"
         shutil.rmtree(out, ignore_errors=True)
         res = _child([sys.executable, "-m", "capture.cli", "run", str(video), "--actor", str(s["actor"]), "--camera",
-                      str(s["camera"]), "--detector", str(s["detector"]), "--formats", "obj,usd,npz", "--out",
+                      str(s["camera"]), "--detector", str(s["detector"]), "--formats", formats, "--out",
                       str(out), "--no-progress", "--overwrite"], None)
         rep = json.loads((out / "report.json").read_text())
-        rows.append({"frames": rep["frames"]["requested"], "peak_rss_mb": res["peak_rss_mb"], "wall_s": res["wall_s"],
+        rows.append({"frames": rep["frames"]["requested"], "formats": formats, "peak_rss_mb": res["peak_rss_mb"],
+                     "wall_s": res["wall_s"],
                      "fit_process_peak_rss_mb": _fit_peak(rep)})
-        print(f"  1920x1080, {rows[-1]['frames']} frames, obj+usd+npz: peak RSS {res['peak_rss_mb']:.0f} MB (the "
+        print(f"  1920x1080, {rows[-1]['frames']} frames, {formats}: peak RSS {res['peak_rss_mb']:.0f} MB (the "
               f"larger of the run's process and its fit process; the fit process alone {_fit_peak(rep) or 0:.0f} MB), "
               f"{res['wall_s']:.1f} s (load average {os.getloadavg()[0]:.1f})")
         shutil.rmtree(out, ignore_errors=True)

@@ -163,6 +163,7 @@ def test_bench_overlay_quick():
     res = main(["--quick"])
     row = res["rows"][0]
     assert row["size"] == "640x360" and row["draw_default_ms"] > 0 and row["encode_ms"] > 0
+    assert row["draw_default_2_threads_ms"] > 0
 
 
 @pytest.mark.slow
