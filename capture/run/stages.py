@@ -68,7 +68,9 @@ def landmark_weights(track) -> np.ndarray:
     """Per-landmark fit weights (T, L): the detector's confidence (1 without one), 0 where missing."""
     w = np.ones(track.points.shape[:2]) if track.confidence is None else np.asarray(track.confidence, np.float64)
     ok = np.isfinite(track.points).all(-1) & np.isfinite(w)
-    return np.where(ok, np.clip(w, 0.0, 1.0), 0.0)
+    out = np.clip(w, 0.0, 1.0)     # one (T, L) array made (a long take's end holds few of its size)
+    out[~ok] = 0.0
+    return out
 
 
 # --------------------------------------------------------------------------------------------- fit
