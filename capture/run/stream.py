@@ -13,7 +13,8 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
                     (capture.fit.process: forked, so it has the loaded actor and a core of its own;
                     a thread where fork is not available or with ``RunConfig.side_processes`` off)
     fit thread      receives the fits, writes the fit's chunks
-    main thread     the exporters (and a second VideoReader when the overlay needs images) -> files;
+    main thread     the exporters (and a second VideoReader when the overlay needs images; the overlay's
+                    frames are drawn by two threads of its own, capture.export.overlay) -> files;
                     the progress bar ("fit", as capture batch follows it) counts the frames written
     worst-frames    once detection is done: a VideoReader that follows the exported frames and keeps
     thread          the images of the worst so far for report.html (report_html.WorstFrameImages)
