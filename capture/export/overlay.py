@@ -11,8 +11,8 @@ Frames are drawn by :data:`DRAW_THREADS` threads (the drawing is numpy and OpenC
 the GIL, so two threads draw about 1.6x as many frames a second as one), at most
 :data:`DRAW_AHEAD` frames a thread ahead of the encoder, and encoded in order as they are drawn (nothing
 else is held), into a temporary sibling that ``close()`` renames over ``overlay.mp4`` (H.264
-``yuv420p`` at the video's frame rate); ``abort()`` deletes it. The video is the same, frame for frame,
-with any number of threads.
+``yuv420p`` at the video's frame rate); ``abort()`` deletes it. The encoder gets the same frames, bit for
+bit, whatever the number of threads (libx264 on its own threads does not repeat its output to the bit).
 Odd frame sizes are padded by one pixel on the right/bottom (yuv420p needs even sizes); pixel
 coordinates are unchanged. Rewritten whole by every export run.
 """
