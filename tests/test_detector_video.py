@@ -254,13 +254,17 @@ def _stacked_track(results, count):
             "sigma_px": col("sigma_px", (count,)), "presence": col("presence", ()), "depth": col("depth", (count,))}
 
 
-@pytest.mark.parametrize("capacity", [0, 5, 40])
-def test_track_builder_equals_the_stacked_results(capacity):
+@pytest.mark.parametrize("capacity,spill", [(0, False), (5, False), (40, False), (5, True), (40, True)])
+def test_track_builder_equals_the_stacked_results(capacity, spill, tmp_path, monkeypatch):
     """A stream fills the track frame by frame (capture.run.stream): the arrays equal those stacked from the
     whole list, whether the room made up front is short (grown by doubling), exact or too large; optional
-    arrays that first appear mid-take are NaN before."""
+    arrays that first appear mid-take are NaN before. Spilled (blocks of 3 frames here), the per-landmark
+    arrays are the same numbers, mapped read-only from files that leave nothing behind."""
     from capture.detector.pipeline import TrackBuilder
     from capture.detector.runtime import FrameLandmarks
+    from capture.io.rows import SpilledRows
+
+    monkeypatch.setattr(SpilledRows, "BLOCK", 3)
 
     rng = np.random.default_rng(3)
     count, results = 7, []
@@ -271,10 +275,17 @@ def test_track_builder_equals_the_stacked_results(capacity):
             confidence=rng.uniform(size=count) if j >= 3 else None, sigma_px=None,
             presence=float(rng.uniform()) if j % 5 == 0 else None, face_found=found,
             crop=(float(j), 2.0, 50.0 + j, 0.0), depth=rng.normal(size=count) if j > 30 else None))
-    builder = TrackBuilder("det", count, capacity)
+    builder = TrackBuilder("det", count, capacity, tmp_path if spill else None)
     for r in results:
         builder.add(r)
     got, want = builder.track(), _stacked_track(results, count)
+    if spill:
+        assert sorted(builder._rows) == ["confidence", "depth", "points"]        # sigma_px: no frame has it
+        for k in builder._rows:
+            assert not getattr(got, k).flags.writeable and not getattr(got, k).flags.owndata, k
+        assert list(tmp_path.iterdir()) == []
+        with pytest.raises(RuntimeError, match="mapped"):
+            builder.add(results[0])
     assert len(got) == 40 and got.detector == "det"
     np.testing.assert_array_equal(builder.frames(), want["frame_index"])
     for k, v in want.items():
@@ -283,5 +294,5 @@ def test_track_builder_equals_the_stacked_results(capacity):
         else:
             assert getattr(got, k).dtype == v.dtype, k
             np.testing.assert_array_equal(getattr(got, k), v, err_msg=k)
-    empty = TrackBuilder("det", count, capacity).track()
+    empty = TrackBuilder("det", count, capacity, tmp_path if spill else None).track()
     assert empty.points.shape == (0, count, 2) and empty.crops.shape == (0, 4) and empty.confidence is None

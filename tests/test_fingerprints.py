@@ -7,9 +7,10 @@ from __future__ import annotations
 import hashlib
 
 import numpy as np
+import pytest
 
-from capture.run.stages import landmark_weights
-from capture.run.store import array_digest
+from capture.run.stages import landmark_weight_blocks, landmark_weights
+from capture.run.store import Blocks, array_digest
 
 
 def reference(*arrays) -> str:
@@ -61,3 +62,40 @@ def test_landmark_weights_are_the_clipped_confidence_and_zero_where_missing():
         assert got.tobytes() == expected.tobytes()
     assert landmark_weights(SimpleNamespace(points=points, confidence=conf))[5, 0] == 0.0
     assert conf[3, 3] != conf[3, 3]      # the track's own confidence is left alone
+
+
+def test_blocks_hash_as_the_whole_array(monkeypatch):
+    """The fit's key hashes the landmark weights block by block: the same digest as the whole (T, L) array,
+    for a take shorter than a block, a whole number of blocks and a short last block."""
+    from types import SimpleNamespace
+
+    import capture.run.stages as stages
+
+    monkeypatch.setattr(stages, "BLOCK_FRAMES", 4)
+    rng = np.random.default_rng(2)
+    for n in (0, 3, 8, 11):
+        points = rng.normal(size=(n, 5, 2))
+        points[::3, 1] = np.nan
+        track = SimpleNamespace(points=points, confidence=rng.uniform(-0.2, 1.2, (n, 5)))
+        whole = landmark_weights(track)
+        assert array_digest(np.arange(n), landmark_weight_blocks(track)) == reference(np.arange(n), whole)
+    with pytest.raises(ValueError, match="rows"):
+        array_digest(Blocks(np.float64, (5, 2), lambda: [np.zeros((3, 2))]))
+    with pytest.raises(ValueError, match="shape"):
+        array_digest(Blocks(np.float64, (3, 2), lambda: [np.zeros((3, 4))]))
+
+
+def test_landmark_checks_by_blocks_equal_the_whole(monkeypatch):
+    import capture.run.checks as checks
+
+    rng = np.random.default_rng(4)
+    points = rng.normal(0, 30, size=(11, 12, 2))
+    points[2] = 5.0                      # collapsed
+    points[6, 3:] = np.nan               # too few landmarks
+    conf = rng.uniform(0, 1, (11, 12))
+    conf[9, 2:] = 0.0                    # too few confident ones
+    whole = checks.landmark_problems(points, conf)
+    assert [j for j, p in enumerate(whole) if p] == [2, 6, 9]
+    monkeypatch.setattr(checks, "BLOCK_FRAMES", 4)
+    assert list(checks.landmark_problems(points, conf)) == list(whole)
+    assert list(checks.landmark_problems(points, None)) == list(checks._problems(points, None))

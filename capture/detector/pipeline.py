@@ -92,16 +92,25 @@ class TrackBuilder:
     """A :class:`LandmarkTrack` filled frame by frame (:meth:`add`), so that a stream need not hold the frames'
     :class:`FrameLandmarks` until the end: the arrays are those :func:`stack_frames` gives for the same
     results. Room for ``capacity`` frames is made up front (doubled when more come); an optional array
-    (confidence, sigma_px, presence, depth) is made at the first frame that has it, NaN before."""
+    (confidence, sigma_px, presence, depth) is made at the first frame that has it, NaN before.
+
+    With ``spill_dir``, the arrays of one row per landmark (points, confidence, sigma_px, depth) are held a
+    block of frames at a time and spilled to unnamed temporary files there
+    (:class:`capture.io.rows.SpilledRows`), and :meth:`track` maps them read-only: the builder itself then
+    holds a few numbers a frame (frame index, face found, crop, presence), whatever the take's length. The
+    arrays are the same either way."""
 
     OPTIONAL = ("confidence", "sigma_px", "presence", "depth")
+    PER_LANDMARK = ("points", "confidence", "sigma_px", "depth")
 
-    def __init__(self, detector: str, count: int, capacity: int = 0):
+    def __init__(self, detector: str, count: int, capacity: int = 0, spill_dir: Path | None = None):
         self.detector, self.count, self.n = detector, int(count), 0
         self._cap = max(0, int(capacity))
         self._arrays: dict[str, np.ndarray] = {"frame_index": np.zeros(self._cap, np.int64),
                                                "face_found": np.zeros(self._cap, bool),
                                                "crops": np.full((self._cap, 4), np.nan)}
+        self._spill_dir = None if spill_dir is None else Path(spill_dir)
+        self._rows: dict = {}      # name -> SpilledRows, with spill_dir
 
     def __len__(self) -> int:
         return self.n
@@ -118,17 +127,34 @@ class TrackBuilder:
             self._arrays[name] = b
         self._cap = cap
 
+    def _spill_row(self, name: str, value) -> None:
+        from capture.io.rows import SpilledRows
+
+        rows = self._rows.get(name)
+        if rows is None:
+            if value is None:
+                return
+            dtype = np.asarray(value).dtype if name == "points" else np.float64
+            rows = self._rows[name] = SpilledRows(dtype, (), self._spill_dir)
+            for _ in range(self.n):     # NaN before the first frame that has it
+                rows.append(None)
+        rows.append(None if value is None else np.asarray(value, rows.dtype))
+
     def add(self, r: FrameLandmarks) -> None:
         if self.n == self._cap:
             self._grow()
         a, i = self._arrays, self.n
-        if "points" not in a:
-            pts = np.asarray(r.points)
-            a["points"] = np.zeros((self._cap,) + pts.shape, pts.dtype)
-        a["points"][i] = r.points
+        spilled = self.PER_LANDMARK if self._spill_dir is not None else ()
+        for name in spilled:
+            self._spill_row(name, getattr(r, name))
+        if "points" not in spilled:
+            if "points" not in a:
+                pts = np.asarray(r.points)
+                a["points"] = np.zeros((self._cap,) + pts.shape, pts.dtype)
+            a["points"][i] = r.points
         for name in self.OPTIONAL:
             v = getattr(r, name)
-            if v is not None:
+            if v is not None and name not in spilled:
                 if name not in a:
                     a[name] = np.full((self._cap,) + self._row_shape(name), np.nan)
                 a[name][i] = v
@@ -144,6 +170,7 @@ class TrackBuilder:
     def track(self) -> LandmarkTrack:
         a, n = self._arrays, self.n
         got = {k: (v if len(v) == n else v[:n]) for k, v in a.items()}   # views; no copy when full
+        got.update({k: rows.mapped() for k, rows in self._rows.items()})
         return LandmarkTrack(
             detector=self.detector, frame_index=got["frame_index"],
             points=got["points"] if "points" in got else np.zeros((0, self.count, 2)),

@@ -57,90 +57,10 @@ import numpy as np
 
 from capture.export.base import STATUSES, ExportContext, FrameFitLike, PendingFile, status_code
 from capture.fit.records import is_repeated_rows
+from capture.io.rows import SpilledRows as _Rows, same_shape as _same_shape, stack_rows as _stack
 
 PARAMS_FILE = "params.npz"
 LANDMARKS_FILE = "landmarks.npz"
-
-
-def _stack(rows: list, dtype, tail: tuple[int, ...] | None = None) -> np.ndarray:
-    """Stack per-frame arrays; ``None`` rows become NaN of the common shape (first non-None)."""
-    shape = tail
-    for r in rows:
-        if r is not None:
-            shape = np.shape(r)
-            break
-    if shape is None:
-        shape = (0,)
-    out = np.full((len(rows),) + tuple(shape), np.nan, dtype=dtype)
-    for i, r in enumerate(rows):
-        if r is not None:
-            r = np.asarray(r, dtype=dtype)
-            if r.shape != tuple(shape):
-                raise ValueError(f"frame row {i}: expected shape {tuple(shape)} like earlier frames, got {r.shape}")
-            out[i] = r
-    return out
-
-
-def _same_shape(shape: tuple[int, ...] | None, row, index: int) -> tuple[int, ...] | None:
-    """The rows' shape so far after frame row ``index`` (the first row's); ValueError for a row of another."""
-    if row is None:
-        return shape
-    got = tuple(np.shape(row))
-    if shape is not None and got != shape:
-        raise ValueError(f"frame row {index}: expected shape {shape} like earlier frames, got {got}")
-    return got
-
-
-class _Rows:
-    """The rows of one (T, ...) array of ``dtype``, one per frame as it arrives: an array of the row shape (the
-    first row's; a read-only broadcast view is fine) or None (NaN).
-
-    At most ``BLOCK`` rows are held; each full block is stacked and appended to an unnamed temporary file in
-    ``spill_dir``. :meth:`blocks` gives the array ``np.stack`` of the rows would make (None as NaN), block by
-    block; ``tail`` is the row shape when every row is None."""
-
-    BLOCK = 256
-
-    def __init__(self, dtype, tail: tuple[int, ...], spill_dir: Path):
-        self.dtype, self.tail, self.shape = np.dtype(dtype), tuple(tail), None
-        self._dir, self._file, self._spilled, self._held = Path(spill_dir), None, 0, []
-
-    def __len__(self) -> int:
-        return self._spilled + len(self._held)
-
-    def append(self, row) -> None:
-        self.shape = _same_shape(self.shape, row, len(self))
-        self._held.append(row)
-        if len(self._held) >= self.BLOCK and self.shape is not None:
-            if self._file is None:
-                import tempfile
-
-                self._file = tempfile.TemporaryFile(dir=self._dir, prefix=".rows-")
-            self._file.write(memoryview(_stack(self._held, self.dtype, self.shape)).cast("B"))
-            self._spilled += len(self._held)
-            self._held = []
-
-    def row_shape(self, tail: tuple[int, ...] | None = None) -> tuple[int, ...]:
-        return self.shape if self.shape is not None else tuple(self.tail if tail is None else tail)
-
-    def blocks(self, tail: tuple[int, ...] | None = None):
-        """``(k, *row shape)`` blocks of at most ``BLOCK`` rows, in order (``tail``: overrides the row shape
-        given when every row is None)."""
-        shape = self.row_shape(tail)
-        if self._spilled:
-            self._file.flush()
-            self._file.seek(0)
-            size = int(np.prod(shape, dtype=np.int64)) * self.dtype.itemsize
-            for k in range(0, self._spilled, self.BLOCK):
-                n = min(self.BLOCK, self._spilled - k)
-                yield np.frombuffer(self._file.read(n * size), self.dtype).reshape((n,) + shape)
-        if self._held:
-            yield _stack(self._held, self.dtype, shape)
-
-    def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-            self._file = None
 
 
 class _Coefficients:

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from capture.io.errors import CaptureError
+from capture.io.rows import BLOCK_FRAMES
 
 #: Landmarks whose spread (RMS distance from their centroid, px) is below this have collapsed.
 COLLAPSED_SPREAD_PX = 1.0
@@ -32,6 +33,14 @@ MAX_IMPLAUSIBLE_FRACTION = 0.5
 
 def landmark_problems(points: np.ndarray, confidence: np.ndarray | None) -> np.ndarray:
     """Per frame, ``""`` or why its landmarks cannot be fitted. ``points (T, L, 2)`` px, ``confidence (T, L)``."""
+    out = np.full(len(points), "", dtype=object)
+    for k in range(0, len(points), BLOCK_FRAMES):
+        out[k:k + BLOCK_FRAMES] = _problems(points[k:k + BLOCK_FRAMES],
+                                            None if confidence is None else confidence[k:k + BLOCK_FRAMES])
+    return out
+
+
+def _problems(points: np.ndarray, confidence: np.ndarray | None) -> np.ndarray:
     points = np.asarray(points, np.float64)
     usable = np.isfinite(points).all(-1)
     if confidence is not None:

@@ -21,8 +21,9 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 import numpy as np
 
 from capture.io.atomic import write_json
+from capture.io.rows import BLOCK_FRAMES
 from capture.run.progress import StageProgress
-from capture.run.store import array_digest, digest, load_frame_fits, read_json, save_frame_fits
+from capture.run.store import Blocks, array_digest, digest, load_frame_fits, read_json, save_frame_fits
 
 LANDMARKS = "detections/track.npz"
 EXPORT_JSON = "export.json"
@@ -64,13 +65,22 @@ def detect_stage(inputs, out_dir: Path, overwrite: bool = False, log: list | Non
     return path
 
 
-def landmark_weights(track) -> np.ndarray:
-    """Per-landmark fit weights (T, L): the detector's confidence (1 without one), 0 where missing."""
-    w = np.ones(track.points.shape[:2]) if track.confidence is None else np.asarray(track.confidence, np.float64)
-    ok = np.isfinite(track.points).all(-1) & np.isfinite(w)
-    out = np.clip(w, 0.0, 1.0)     # one (T, L) array made (a long take's end holds few of its size)
+def landmark_weights(track, frames: slice = slice(None)) -> np.ndarray:
+    """Per-landmark fit weights (T, L) of the track's ``frames``: the detector's confidence (1 without
+    one), 0 where missing."""
+    points = track.points[frames]
+    w = np.ones(points.shape[:2]) if track.confidence is None else np.asarray(track.confidence[frames], np.float64)
+    ok = np.isfinite(points).all(-1) & np.isfinite(w)
+    out = np.clip(w, 0.0, 1.0)
     out[~ok] = 0.0
     return out
+
+
+def landmark_weight_blocks(track) -> Blocks:
+    """:func:`landmark_weights` of the whole track, ``BLOCK_FRAMES`` frames at a time (for a digest)."""
+    n, count = track.points.shape[:2]
+    return Blocks(np.float64, (n, count), lambda: (landmark_weights(track, slice(k, k + BLOCK_FRAMES))
+                                                   for k in range(0, n, BLOCK_FRAMES)))
 
 
 # --------------------------------------------------------------------------------------------- fit
@@ -81,7 +91,7 @@ def fit_key(inputs, track) -> dict:
            "device": cfg.device, "actor_weights_sha256": inputs.actor_weights_sha256,
            "embedding_sha256": inputs.embedding_sha256,
            "camera": {"K": cam.K.tolist(), "dist": cam.dist.tolist(), "image_size": list(cam.image_size)},
-           "landmarks_sha256": array_digest(track.frame_index, track.points, landmark_weights(track),
+           "landmarks_sha256": array_digest(track.frame_index, track.points, landmark_weight_blocks(track),
                                             track.face_found)}
     if getattr(cfg, "segments", None):   # stitched from segments by capture batch: another fit
         key["segments"] = [[int(s), int(e)] for s, e in cfg.segments]

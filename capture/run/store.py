@@ -57,11 +57,34 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def array_digest(*arrays: np.ndarray | None) -> str:
+@dataclasses.dataclass(frozen=True)
+class Blocks:
+    """An array given block by block along its first axis, for :func:`array_digest` (which hashes it as it
+    would the whole array) when the whole is not wanted in memory: its ``dtype``, the ``shape`` of the
+    whole, and ``blocks()`` giving the blocks in order."""
+
+    dtype: Any
+    shape: tuple
+    blocks: Any     # () -> iterable of arrays
+
+
+def array_digest(*arrays: np.ndarray | Blocks | None) -> str:
     h = hashlib.sha256()
     for a in arrays:
         if a is None:
             h.update(b"none")
+            continue
+        if isinstance(a, Blocks):
+            dtype, shape, rows = np.dtype(a.dtype), tuple(int(n) for n in a.shape), 0
+            h.update(str((dtype.str, shape)).encode())
+            for b in a.blocks():
+                b = np.ascontiguousarray(b, dtype)
+                if b.shape[1:] != shape[1:]:
+                    raise ValueError(f"block of shape {b.shape} in an array of shape {shape}")
+                rows += len(b)
+                h.update(memoryview(b.reshape(-1)).cast("B"))
+            if rows != shape[0]:
+                raise ValueError(f"blocks of {rows} rows in all for an array of shape {shape}")
             continue
         a = np.ascontiguousarray(a)   # no copy when it is already C-contiguous
         h.update(str((a.dtype.str, a.shape)).encode())

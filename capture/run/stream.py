@@ -25,10 +25,10 @@ back-pressure); the decoder works at most one group of detection
 segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector and frames are
 decoded into buffers that the detector gives back (:class:`capture.io.video.FramePool`; other large
 blocks are allocated off the heap, :mod:`capture.io.heap`). What a run keeps of every frame is small:
-its landmarks in the track (:class:`capture.detector.pipeline.TrackBuilder`, about 11 KB a frame at 468
-landmarks; each frame's ``FrameLandmarks`` is let go once exported), the NPZ writers' rows spilled to
-disk a block at a time (:mod:`capture.export.params`), a few numbers for the report; about 16 KB a frame
-in all (``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
+the track's per-landmark arrays and the NPZ writers' rows are spilled to unnamed files a block at a time
+(:class:`capture.io.rows.SpilledRows`; the track is mapped back read-only at the end), each frame's
+``FrameLandmarks`` is let go once exported, and what stays in memory is a few numbers a frame (frame
+index, crop, the report's series; ``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
 event: an error or an interrupt in any stage stops all of them (a fit window being solved finishes
 first, and is kept), and the error is raised in the main thread (where SIGTERM and Ctrl-C arrive; the
 fit process ignores them and stops when the parent tells it).
@@ -291,7 +291,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     landmarks = pipe_line.pipe(LANDMARK_QUEUE_FRAMES)
     fits = pipe_line.pipe(QUEUE_FRAMES)
     clocks = {k: StageClock() for k in ("decode", "detect", "feed", "fit", "export")}
-    track_rows = TrackBuilder(det.name, det.count, n_frames)   # the requested frames' landmarks, in order
+    # the requested frames' landmarks, in order; the per-landmark arrays spilled to unnamed files in out
+    track_rows = TrackBuilder(det.name, det.count, n_frames, spill_dir=out)
     unexported: deque = deque()                 # their FrameLandmarks until exported (bounded: FIT_BACKLOG_FRAMES)
     stats = {"detected": 0, "cached": sum(len(v) for v in plan.cached.values())}
 
