@@ -26,6 +26,7 @@ from typing import Sequence
 import numpy as np
 
 from capture.io.atomic import atomic_path, write_json
+from capture.io.rows import SpilledRows
 from capture.detector.runtime import Detector, FrameLandmarks, TrackState, Lane
 from capture.io.errors import CaptureError
 from capture.io.video import FramePool, VideoReader, video_identity
@@ -110,7 +111,7 @@ class TrackBuilder:
                                                "face_found": np.zeros(self._cap, bool),
                                                "crops": np.full((self._cap, 4), np.nan)}
         self._spill_dir = None if spill_dir is None else Path(spill_dir)
-        self._rows: dict = {}      # name -> SpilledRows, with spill_dir
+        self._rows: dict[str, SpilledRows] = {}      # with spill_dir
 
     def __len__(self) -> int:
         return self.n
@@ -128,8 +129,6 @@ class TrackBuilder:
         self._cap = cap
 
     def _spill_row(self, name: str, value) -> None:
-        from capture.io.rows import SpilledRows
-
         rows = self._rows.get(name)
         if rows is None:
             if value is None:

@@ -57,7 +57,7 @@ import numpy as np
 
 from capture.export.base import STATUSES, ExportContext, FrameFitLike, PendingFile, status_code
 from capture.fit.records import is_repeated_rows
-from capture.io.rows import SpilledRows as _Rows, same_shape as _same_shape, stack_rows as _stack
+from capture.io.rows import SpilledRows, same_shape
 
 PARAMS_FILE = "params.npz"
 LANDMARKS_FILE = "landmarks.npz"
@@ -65,7 +65,7 @@ LANDMARKS_FILE = "landmarks.npz"
 
 class _Coefficients:
     """``coefficients_landmarks`` rows (L, E): a frame's repeated row (:func:`capture.fit.records.repeated_rows`)
-    is kept as its one row of E numbers, any other as float32 (L, E); both spilled as :class:`_Rows`."""
+    is kept as its one row of E numbers, any other as float32 (L, E); both spilled as :class:`SpilledRows`."""
 
     dtype = np.dtype(np.float32)
 
@@ -74,14 +74,14 @@ class _Coefficients:
 
         self.kinds = array("b")       # per frame: 0 none, 1 one row repeated, 2 full
         self.shape: tuple[int, ...] | None = None
-        self._one = _Rows(np.float32, (0,), spill_dir)
-        self._full = _Rows(np.float32, (0, 0), spill_dir)
+        self._one = SpilledRows(np.float32, (0,), spill_dir)
+        self._full = SpilledRows(np.float32, (0, 0), spill_dir)
 
     def __len__(self) -> int:
         return len(self.kinds)
 
     def append(self, w) -> None:
-        self.shape = _same_shape(self.shape, w, len(self))
+        self.shape = same_shape(self.shape, w, len(self))
         if w is None:
             self.kinds.append(0)
         elif is_repeated_rows(w):
@@ -99,8 +99,8 @@ class _Coefficients:
         shape = self.row_shape()
         one = (r for b in self._one.blocks(shape[1:]) for r in b)
         full = (r for b in self._full.blocks(shape) for r in b)
-        for k in range(0, len(self.kinds), _Rows.BLOCK):
-            kinds = self.kinds[k:k + _Rows.BLOCK]
+        for k in range(0, len(self.kinds), SpilledRows.BLOCK):
+            kinds = self.kinds[k:k + SpilledRows.BLOCK]
             out = np.full((len(kinds),) + shape, np.nan, np.float32)
             for i, kind in enumerate(kinds):
                 if kind:
@@ -113,7 +113,7 @@ class _Coefficients:
 
 
 def _savez(fh, arrays: dict, tails: dict | None = None) -> None:
-    """``np.savez(fh, **arrays)`` where a value may also be :class:`_Rows` or :class:`_Coefficients`
+    """``np.savez(fh, **arrays)`` where a value may also be :class:`SpilledRows` or :class:`_Coefficients`
     (written block by block: the same bytes as its stacked array, which ``np.load`` reads back; ``tails``:
     the row shape of such a value whose rows are all None)."""
     import zipfile
@@ -122,7 +122,7 @@ def _savez(fh, arrays: dict, tails: dict | None = None) -> None:
     with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as z:
         for key, value in arrays.items():
             with z.open(key + ".npy", "w", force_zip64=True) as member:
-                if not isinstance(value, (_Rows, _Coefficients)):
+                if not isinstance(value, (SpilledRows, _Coefficients)):
                     np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
                     continue
                 tail = tails.get(key)
@@ -139,7 +139,7 @@ def _opt(fit, name):
 
 
 class ParamsWriter:
-    """Takes per-frame parameters and detections as they come (held in blocks, spilled: :class:`_Rows`);
+    """Takes per-frame parameters and detections as they come (held in blocks, spilled: :class:`SpilledRows`);
     writes both NPZ files on close."""
 
     needs_image = False
@@ -153,7 +153,7 @@ class ParamsWriter:
         from array import array
 
         self.out_dir, self.ctx = Path(out_dir), ctx
-        self._rows = {k: _Rows(dtype, tail, self.out_dir) for k, (dtype, tail) in self.ROWS.items()}
+        self._rows = {k: SpilledRows(dtype, tail, self.out_dir) for k, (dtype, tail) in self.ROWS.items()}
         self._coefficients = _Coefficients(self.out_dir)
         self._frames, self._status = array("q"), array("b")
         self._rms, self._found = array("d"), array("b")
@@ -192,7 +192,7 @@ class ParamsWriter:
         self._found.append(found)
 
     def _arrays(self) -> tuple[dict, dict | None, dict]:
-        """The archives' arrays (per-frame ones as :class:`_Rows`) and the row shapes of those that no frame
+        """The archives' arrays (per-frame ones as :class:`SpilledRows`) and the row shapes of those that no frame
         has, by archive key."""
         r, ctx = self._rows, self.ctx
         frame_index = np.asarray(self._frames, np.int64)
