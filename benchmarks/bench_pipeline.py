@@ -151,13 +151,34 @@ def _env() -> dict:
     return env
 
 
-def _child(cmd: list[str], cores: set[int] | None, watch: Path | None = None) -> dict:
-    """Run ``cmd``; wall seconds, and the seconds until ``watch`` exists (polled every 5 ms)."""
+def tree_pss_mb(pid: int) -> float | None:
+    """Proportional set size (MB) of process ``pid`` and all its descendants, from Linux' ``smaps_rollup``;
+    None where /proc does not have it. Unlike the peak RSS of ``wait4``, which is that of the largest single
+    process, this is what the run and its fit process hold together, pages they share (the fork's
+    copy-on-write pages, libraries) counted once."""
+    total, stack, seen = 0, [pid], False
+    while stack:
+        p = stack.pop()
+        try:
+            with open(f"/proc/{p}/smaps_rollup") as f:
+                total += next(int(line.split()[1]) for line in f if line.startswith("Pss:"))
+            seen = True
+            for task in os.listdir(f"/proc/{p}/task"):
+                with open(f"/proc/{p}/task/{task}/children") as f:
+                    stack.extend(int(c) for c in f.read().split())
+        except (OSError, StopIteration, ValueError):   # gone meanwhile, or no such file on this system
+            continue
+    return total / 1024 if seen else None
+
+
+def _child(cmd: list[str], cores: set[int] | None, watch: Path | None = None, pss_every_s: float = 0.0) -> dict:
+    """Run ``cmd``; wall seconds, and the seconds until ``watch`` exists (polled every 5 ms). With
+    ``pss_every_s`` > 0 also ``peak_pss_mb``: the largest :func:`tree_pss_mb` sampled that often."""
     pre = (lambda: os.sched_setaffinity(0, cores)) if cores else None
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=pre)
-    seen = None
+    seen, peak_pss, next_pss = None, None, 0.0
     import threading
 
     pipes = {}
@@ -168,6 +189,11 @@ def _child(cmd: list[str], cores: set[int] | None, watch: Path | None = None) ->
     while True:
         if watch is not None and seen is None and watch.exists():
             seen = time.perf_counter() - t0
+        if pss_every_s > 0 and time.perf_counter() >= next_pss:
+            pss = tree_pss_mb(proc.pid)
+            if pss is not None:
+                peak_pss = pss if peak_pss is None else max(peak_pss, pss)
+            next_pss = time.perf_counter() + pss_every_s
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid:
             break
@@ -179,7 +205,8 @@ def _child(cmd: list[str], cores: set[int] | None, watch: Path | None = None) ->
     out, err = pipes.get("out", ""), pipes.get("err", "")
     if proc.returncode:
         raise RuntimeError(f"{' '.join(cmd[:4])} failed ({proc.returncode}): {err.strip()[-2000:]}")
-    return {"wall_s": wall, "watch_s": seen, "stdout": out, "stderr": err, "peak_rss_mb": usage.ru_maxrss / 1024}
+    return {"wall_s": wall, "watch_s": seen, "stdout": out, "stderr": err, "peak_rss_mb": usage.ru_maxrss / 1024,
+            "peak_pss_mb": peak_pss}
 
 
 def upscaled(video: Path, out: Path, size: tuple[int, int], repeat: int) -> Path:
@@ -284,10 +311,10 @@ def _measure(args, work: Path) -> dict:
         for name, cores in (("run 2 cores", both), ("run 1 core", {0})):
             out = work / f"run_{r}_{name.replace(' ', '_')}"
             shutil.rmtree(out, ignore_errors=True)
-            res = _child(run_cmd(out), cores, watch=out / "run.json")
+            res = _child(run_cmd(out), cores, watch=out / "run.json", pss_every_s=0.5)
             rep = json.loads((out / "report.json").read_text())
             rows.setdefault(name, []).append({"wall_s": res["wall_s"], "frames": rep["frames"]["requested"],
-                                              "peak_rss_mb": res["peak_rss_mb"],
+                                              "peak_rss_mb": res["peak_rss_mb"], "peak_pss_mb": res["peak_pss_mb"],
                                               "fit_process_peak_rss_mb": _fit_peak(rep),
                                               "inner_s": rep["seconds_total"], "start_s": res["watch_s"],
                                               "stages": {st["stage"]: round(st["seconds"], 2) for st in rep["stages"]}})
@@ -324,6 +351,7 @@ def _measure(args, work: Path) -> dict:
         "run_start_s": med("run 2 cores", "start_s"), "help_s": med("capture --help"),
         "run_peak_rss_mb": max(x["peak_rss_mb"] for x in rows["run 2 cores"]),
         "fit_process_peak_rss_mb": max((x["fit_process_peak_rss_mb"] or 0.0) for x in rows["run 2 cores"]),
+        "run_peak_pss_mb": max((x["peak_pss_mb"] or 0.0) for x in rows["run 2 cores"]) or None,   # both processes
     }
     for name in [k for k in rows if k.startswith("live ")]:
         key = name.replace(" ", "_")
@@ -357,13 +385,15 @@ def _memory(s: dict, work: Path, formats: str) -> dict:
         shutil.rmtree(out, ignore_errors=True)
         res = _child([sys.executable, "-m", "capture.cli", "run", str(video), "--actor", str(s["actor"]), "--camera",
                       str(s["camera"]), "--detector", str(s["detector"]), "--formats", formats, "--out",
-                      str(out), "--no-progress", "--overwrite"], None)
+                      str(out), "--no-progress", "--overwrite"], None, pss_every_s=0.5)
         rep = json.loads((out / "report.json").read_text())
         rows.append({"frames": rep["frames"]["requested"], "formats": formats, "peak_rss_mb": res["peak_rss_mb"],
-                     "wall_s": res["wall_s"],
+                     "peak_pss_mb": res["peak_pss_mb"], "wall_s": res["wall_s"],
                      "fit_process_peak_rss_mb": _fit_peak(rep)})
-        print(f"  1920x1080, {rows[-1]['frames']} frames, {formats}: peak RSS {res['peak_rss_mb']:.0f} MB (the "
-              f"larger of the run's process and its fit process; the fit process alone {_fit_peak(rep) or 0:.0f} MB), "
+        together = "n/a" if res["peak_pss_mb"] is None else f"{res['peak_pss_mb']:.0f} MB"
+        print(f"  1920x1080, {rows[-1]['frames']} frames, {formats}: both processes together {together} (peak of "
+              f"their PSS, sampled every 0.5 s); peak RSS {res['peak_rss_mb']:.0f} MB (the larger of the run's "
+              f"process and its fit process; the fit process alone {_fit_peak(rep) or 0:.0f} MB), "
               f"{res['wall_s']:.1f} s (load average {os.getloadavg()[0]:.1f})")
         shutil.rmtree(out, ignore_errors=True)
     return {"memory": rows}

@@ -3,6 +3,8 @@ benchmark scripts (they still run; their figures are not checked)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.optimize import lsq_linear
@@ -282,3 +284,31 @@ def test_bench_outofspan_over_seeds(tmp_path):
     assert row["mean_mm"] == pytest.approx(np.mean(per_seq)) and row["median_mm"] == pytest.approx(np.median(per_seq))
     assert per_seq[0] != per_seq[1]          # two different performances, not one run twice
     assert (tmp_path / "outofspan_seeds0-1.json").is_file()
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps_rollup").is_file(), reason="Linux' /proc smaps_rollup only")
+def test_tree_pss_counts_a_forked_childs_own_memory_once_and_the_shared_pages_once():
+    """bench_pipeline.tree_pss_mb sums the proportional set size over a process and its descendants: a child
+    forked from a process holding 64 MB adds only the 32 MB it touches itself (an RSS sum would add ~100 MB)."""
+    import subprocess
+    import sys
+
+    from benchmarks.bench_pipeline import tree_pss_mb
+
+    script = ("import os, sys, time\nimport numpy as np\na = np.ones(8 << 20)\nprint('parent', flush=True)\n"
+              "sys.stdin.readline()\nif os.fork() == 0:\n    b = np.ones(4 << 20)\n    print('child', flush=True)\n"
+              "    time.sleep(30)\n    os._exit(0)\ntime.sleep(30)\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "parent"
+        alone = tree_pss_mb(proc.pid)
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+        assert proc.stdout.readline().strip() == "child"
+        together = tree_pss_mb(proc.pid)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert alone is not None and alone > 64
+    assert 28 < together - alone < 44, (alone, together)
+    assert tree_pss_mb(proc.pid) is None                  # gone

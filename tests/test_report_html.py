@@ -143,6 +143,10 @@ def test_figures_drawn_in_their_own_process_are_the_same_bytes():
         fp._proc.join()
         fp.submit(s)
         assert fp.result() == here                 # the process is gone: drawn here
+    with FigureProcess() as fp:
+        fp.submit(s)
+        assert fp.result() == here
+    assert fp._proc.exitcode == 0                  # it left cleanly when told to (report_figures._leave)
 
 
 def test_worst_frame_images_keeps_exactly_the_worst_frames():
@@ -167,3 +171,36 @@ def test_worst_frame_images_keeps_exactly_the_worst_frames():
         ref = worst_frames(SimpleNamespace(error=err, frame=frames), k)
         assert sorted(c.images) == sorted(ref), (trial, k)
         assert all(int(v[0]) == f for f, v in c.images.items())
+
+
+def test_thumbnails_drawn_on_threads_equal_those_drawn_one_by_one(monkeypatch):
+    """report_html.thumbnails draws the worst frames on the overlay's threads: the same PNGs, in the order of
+    ``frames``, as one thread gives, whatever order the drawings finish in; frames without a fit are left out."""
+    import time
+
+    import capture.export.overlay as overlay
+    import capture.io.machine as machine
+    from capture.export.report_html import thumbnails
+
+    rng = np.random.default_rng(3)
+    frames = [40, 7, 22, 13, 31, 5]
+    images = {i: rng.integers(0, 255, (120, 160, 3), np.uint8) for i in frames}
+    fits = {i: SimpleNamespace(vertices=None, landmarks_fit=np.array([[30.0 + i, 20.0], [90.0, 70.0 + i]]))
+            for i in frames if i != 22}
+    delays = dict(zip(frames, [0.05, 0.0, 0.02, 0.04, 0.0, 0.03]))
+
+    class Renderer:
+        def render(self, img, fit, det, vertices):
+            time.sleep(delays[int(fit.landmarks_fit[0, 0]) - 30])      # finish out of order
+            out = img.copy()
+            out[::7] = 255 - out[::7]
+            return out
+
+    def run(threads):
+        monkeypatch.setattr(overlay, "DRAW_THREADS", threads)
+        monkeypatch.setattr(machine, "usable_cores", lambda: threads)
+        return thumbnails(Path("unused.mp4"), frames, fits, {}, Renderer(), height=48, images=images)
+
+    one, three = run(1), run(3)
+    assert [i for i, _ in one] == [i for i in frames if i != 22]
+    assert three == one

@@ -312,6 +312,31 @@ def test_the_stream_hands_the_report_its_worst_frames_decoded(take, tmp_path, mo
     assert html.count("data:image/png;base64") >= len(seen["frames"])
 
 
+def test_a_segment_detected_piece_by_piece_gives_the_same_landmarks(take, full_run, tmp_path, monkeypatch):
+    """Frames too large for two segments in the stream's decode budget go through a segment a few frames at a
+    time (capture.run.stream.DECODE_PIECE_BYTES), the detector's track carried from piece to piece: the same
+    landmarks and crops, to the bit, as the run that detected the segment in one go."""
+    import capture.run.stream as stream
+
+    root, actor, take_dir = take
+    pieces = []
+    original = stream.decode_pieces
+
+    def spy(indices, piece):
+        pieces.extend(original(indices, piece))
+        return pieces[-len(original(indices, piece)):]
+
+    monkeypatch.setattr(stream, "DECODE_PIECE_BYTES", 3 * 320 * 240 * 3)     # 3 frames of the 320x240 take
+    monkeypatch.setattr(stream, "decode_pieces", spy)
+    out = tmp_path / "out"
+    assert main(run_args(take_dir, actor, out, "--formats", "npz")) == 0
+    assert [len(p) for p in pieces] == [3] * 6 + [2]                           # 20 frames, one segment
+    with np.load(out / "landmarks.npz") as a, np.load(full_run / "landmarks.npz") as b:
+        assert sorted(a.files) == sorted(b.files)
+        for k in a.files:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
 def test_fit3d_on_truth_meshes(take, tmp_path):
     _, actor, take_dir = take
     z = np.load(take_dir / "truth_meshes.npz")

@@ -315,8 +315,12 @@ def thumbnails(video: Path, frames: list[int], fits: dict[int, Any], detections:
 
     ``images``: frames already decoded (e.g. by :class:`WorstFrameImages`); the others are read from
     ``video``."""
+    from concurrent.futures import ThreadPoolExecutor
+
     import cv2
 
+    from capture.export.overlay import DRAW_THREADS
+    from capture.io.machine import usable_cores
     from capture.io.video import VideoReader
 
     def frames_read():
@@ -327,11 +331,10 @@ def thumbnails(video: Path, frames: list[int], fits: dict[int, Any], detections:
             with VideoReader(video) as reader:
                 yield from reader.frames(missing)
 
-    out = {}
-    for i, img in frames_read():
+    def thumbnail(i: int, img: np.ndarray) -> str | None:
         f = fits.get(int(i))
         if f is None:
-            continue
+            return None
         d = detections.get(int(i))
         drawn = renderer.render(img, f, d, getattr(f, "vertices", None))
         pts = np.asarray(d.points if d is not None and d.face_found else getattr(f, "landmarks_fit", np.zeros((0, 2))),
@@ -349,8 +352,16 @@ def thumbnails(video: Path, frames: list[int], fits: dict[int, Any], detections:
         scale = height / crop.shape[0]
         crop = cv2.resize(crop, (max(1, int(round(crop.shape[1] * scale))), height), interpolation=cv2.INTER_AREA)
         ok, png = cv2.imencode(".png", crop)
-        if ok:
-            out[int(i)] = base64.b64encode(png.tobytes()).decode("ascii")
+        return base64.b64encode(png.tobytes()).decode("ascii") if ok else None
+
+    # drawn on the overlay's threads (numpy and OpenCV release the GIL; the renderer keeps no state per frame):
+    # the report comes after the take, on the run's critical path
+    out = {}
+    with ThreadPoolExecutor(max_workers=min(DRAW_THREADS, usable_cores()), thread_name_prefix="capture-thumbs") as pool:
+        for i, job in [(i, pool.submit(thumbnail, i, img)) for i, img in frames_read()]:
+            png = job.result()
+            if png is not None:
+                out[int(i)] = png
     return [(i, out[i]) for i in frames if i in out]
 
 

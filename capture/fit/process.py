@@ -51,6 +51,7 @@ END = "end"
 ABORT = "abort"
 BUILT = "built"        # on the ready pipe after the PnP model: the actor's networks are evaluated
 JOIN_S = 600.0         # how long :meth:`FitWorker.close` waits for the window being solved
+TRIM_EVERY_FRAMES = 2400  # the fit process gives its free heap back this often (capture.io.heap.release_free_heap)
 
 
 class FitStopped(Exception):
@@ -72,6 +73,7 @@ def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_po
         from capture.io.heap import COMPUTE, set_malloc_thresholds
 
         set_malloc_thresholds(*COMPUTE)   # not the run's: its 1 MiB mmap threshold slows the fit 1.4x
+    from capture.io.heap import release_free_heap
     import torch
 
     from capture.fit.stream import fit_take_stream, pnp_model_points
@@ -120,11 +122,14 @@ def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_po
             actor.at_template()
         ready_conn.send(BUILT)
         busy, t_last = 0.0, time.perf_counter()
-        for ff in fit_take_stream(actor, rows(), template_points, camera, how, causal=causal, timings=timings):
+        for k, ff in enumerate(fit_take_stream(actor, rows(), template_points, camera, how, causal=causal,
+                                               timings=timings)):
             now = time.perf_counter()
             busy += now - t_last
             out_conn.send(("fit", ff, read[0]))
             reported[0] = read[0]
+            if not in_thread and k % TRIM_EVERY_FRAMES == TRIM_EVERY_FRAMES - 1:
+                release_free_heap()      # flat in the take's length (capture.io.heap)
             t_last = time.perf_counter()
         busy += time.perf_counter() - t_last
         timings["busy_s"] = max(0.0, busy - timings.get("wait_s", 0.0))

@@ -22,7 +22,9 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
 Queues hold at most :data:`QUEUE_FRAMES` frames, the fit process at most :data:`FIT_BACKLOG_FRAMES` rows
 not yet read (detection waits when the fit or the export falls behind: :meth:`FitWorker.feed`'s
 back-pressure); the decoder works at most one group of detection
-segments (:data:`DECODE_BUDGET_BYTES`, at least one segment) ahead of the detector and frames are
+segments (:data:`DECODE_BUDGET_BYTES`) ahead of the detector, and where frames are too large for two
+segments in that budget (1080p), one segment is decoded and detected a piece of
+:data:`DECODE_PIECE_BYTES` at a time, the track carried from piece to piece. Frames are
 decoded into buffers that the detector gives back (:class:`capture.io.video.FramePool`; other large
 blocks are allocated off the heap, :mod:`capture.io.heap`). What a run keeps of every frame is small:
 the track's per-landmark arrays and the NPZ writers' rows are spilled to unnamed files a block at a time
@@ -67,7 +69,10 @@ LANDMARK_QUEUE_FRAMES = 256    # landmarks waiting for the fit (a few KB each): 
                                # fit process imports torch and builds the actor's networks (~1.7 s)
 FIT_BACKLOG_FRAMES = 512       # rows sent to the fit process and not yet read by it (~11 KB each): when the
                                # fit or the export is slower than detection, detection waits (FitWorker.feed)
-DECODE_BUDGET_BYTES = 256 << 20  # decoded frames of one group of detection segments
+DECODE_BUDGET_BYTES = 256 << 20  # decoded frames of one group of detection segments (at 720p two segments side by
+                                 # side: 128 MB, one at a time, held 340 MB less but made runs 5-20 % slower)
+DECODE_PIECE_BYTES = 48 << 20    # a group of one segment (frames too large for two in the budget) is decoded
+                                 # and detected this much at a time, its track carried over between pieces
 _END = object()
 
 
@@ -175,6 +180,7 @@ class DetectPlan:
     wanted: list[int]
     cache_dir: Path | None
     info: Any
+    piece: int = 1 << 30             # frames decoded at a time in a group of one segment (DECODE_PIECE_BYTES)
 
 
 def plan_detection(video: Path, detector, out_dir: Path, frames, query) -> DetectPlan:
@@ -202,8 +208,10 @@ def plan_detection(video: Path, detector, out_dir: Path, frames, query) -> Detec
                 cached[s] = r
     missing = [s for s in starts if s not in cached]
     seg_len = {s: min(seg, info.frame_count - s) for s in starts}
-    lanes = max(1, min(detector.batch_size, DECODE_BUDGET_BYTES // max(1, info.width * info.height * 3 * seg)))
-    return DetectPlan(starts, seg_len, cached, ramped_groups(missing, lanes), wanted, cdir, info)
+    frame_bytes = max(1, info.width * info.height * 3)
+    lanes = max(1, min(detector.batch_size, DECODE_BUDGET_BYTES // (frame_bytes * seg)))
+    return DetectPlan(starts, seg_len, cached, ramped_groups(missing, lanes), wanted, cdir, info,
+                      piece=max(1, DECODE_PIECE_BYTES // frame_bytes))
 
 
 def ramped_groups(segments: list[int], lanes: int, first: int = 2) -> list[list[int]]:
@@ -238,6 +246,13 @@ def ramped_groups(segments: list[int], lanes: int, first: int = 2) -> list[list[
         out.append(segments[i:i + k])
         i += k
     return out
+
+
+def decode_pieces(indices: list[int], piece: int) -> list[list[int]]:
+    """``indices`` cut into consecutive pieces of at most ``piece`` (>= 1) frames; ``[indices]`` when they fit
+    in one (an empty list stays one empty piece, so that its group still reaches the detector)."""
+    piece = max(1, int(piece))
+    return [indices[k:k + piece] for k in range(0, len(indices), piece)] or [indices]
 
 
 def _frame_weights(points: np.ndarray, confidence: np.ndarray | None) -> np.ndarray:
@@ -309,15 +324,18 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         background_thread()          # it runs ahead of the fit, which sets the pace (capture.io.priority)
         with VideoReader(cfg.video) as reader:
             for group in plan.groups:
-                while not decoded.q.empty():    # one group ahead of the detector, not two: memory
-                    if pipe_line.stop.is_set():
-                        raise _Stopped
-                    time.sleep(0.005)
-                t0 = time.perf_counter()
                 idx = [i for s in group for i in range(s, s + plan.seg_len[s])]
-                buf = dict(reader.frames(idx, pool))
-                clocks["decode"].busy += time.perf_counter() - t0
-                decoded.put((group, buf))
+                # segments side by side need all their frames; one segment goes by pieces (decode_pieces)
+                pieces = decode_pieces(idx, plan.piece if len(group) == 1 else len(idx))
+                for k, part in enumerate(pieces):
+                    while not decoded.q.empty():    # one piece ahead of the detector, not two: memory
+                        if pipe_line.stop.is_set():
+                            raise _Stopped
+                        time.sleep(0.005)
+                    t0 = time.perf_counter()
+                    buf = dict(reader.frames(part, pool))
+                    clocks["decode"].busy += time.perf_counter() - t0
+                    decoded.put((group, buf, k == len(pieces) - 1))
         decoded.put(_END)
 
     def detect():
@@ -329,22 +347,30 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                 seg_results = plan.cached.pop(s)
             else:
                 if s not in done:
-                    group, buf = next(groups)
+                    group, buf, last = next(groups)
+                    states = [TrackState() for _ in group]    # a lane's track, carried from piece to piece
+                    results: list[list] = [[] for _ in group]
+                    while True:
+                        t0 = time.perf_counter()
+                        lanes = []
+                        for g, state in zip(group, states):
+                            ids = [i for i in range(g, g + plan.seg_len[g]) if i in buf]
+                            lanes.append(Lane(ids, [buf[i] for i in ids], state))
+                        det.run_lanes(lanes, q, batch_size=len(group))
+                        pool.give(buf.values())     # the detector keeps no frame: decoded into again
+                        del buf
+                        for lane, res in zip(lanes, results):
+                            res.extend(lane.results)
+                            lane.frames = []        # let go of the decoded frames before waiting for the next piece
+                        clocks["detect"].busy += time.perf_counter() - t0
+                        if last:
+                            break
+                        _, buf, last = next(groups)
                     t0 = time.perf_counter()
-                    lanes = []
-                    for g in group:
-                        ids = [i for i in range(g, g + plan.seg_len[g]) if i in buf]
-                        lanes.append(Lane(ids, [buf[i] for i in ids], TrackState()))
-                    det.run_lanes(lanes, q, batch_size=len(group))
-                    pool.give(buf.values())     # the detector keeps no frame: decoded into again
-                    del buf
-                    for lane in lanes:
-                        lane.frames = []        # let go of the decoded frames before waiting for the next group
-                    for g, lane in zip(group, lanes):
-                        done[g] = lane.results
-                        stats["detected"] += len(lane.results)
-                        _write_segment(_segment_path(plan.cache_dir, g), stack_frames(det.name, lane.results,
-                                                                                      det.count))
+                    for g, res in zip(group, results):
+                        done[g] = res
+                        stats["detected"] += len(res)
+                        _write_segment(_segment_path(plan.cache_dir, g), stack_frames(det.name, res, det.count))
                     clocks["detect"].busy += time.perf_counter() - t0
                 seg_results = done.pop(s)
             for r in seg_results:
