@@ -13,8 +13,9 @@ threshold at its 128 KB default unless it is set too. Two processes of a run wan
   sets thresholds as large as glibc's dynamic ones grow to.
 
 :func:`release_free_heap` gives the free parts of the heap back to the system (``malloc_trim``): the fit
-process calls it every few hundred frames, since with its large trim threshold the free memory it held grew
-with the take (396 -> 487 MB over a 12,000-frame take, of which a trim gave back about 100 MB).
+process calls it every 2,400 frames (``capture.fit.process.TRIM_EVERY_FRAMES``), since with its large trim
+threshold the free memory it held grew with the take (396 -> 487 MB over a 12,000-frame take, of which a
+trim gave back about 100 MB).
 
 No-op off glibc.
 """
@@ -25,25 +26,30 @@ FRAMES_OFF_HEAP = (1 << 20, 64 << 20)     # (mmap, trim) bytes: the run's proces
 COMPUTE = (32 << 20, 64 << 20)            # glibc's largest dynamic mmap threshold on 64-bit, twice it to trim
 
 
-def set_malloc_thresholds(mmap_bytes: int, trim_bytes: int) -> None:
-    """Fix glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` for this process (see the module docstring)."""
+def _libc():
+    """glibc through ctypes, or None where there is none."""
     import ctypes
     import ctypes.util
 
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return None
+
+
+def set_malloc_thresholds(mmap_bytes: int, trim_bytes: int) -> None:
+    """Fix glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` for this process (see the module docstring)."""
+    try:
+        libc = _libc()
         libc.mallopt(-3, int(mmap_bytes))     # M_MMAP_THRESHOLD
         libc.mallopt(-1, int(trim_bytes))     # M_TRIM_THRESHOLD
-    except (OSError, AttributeError):
+    except AttributeError:                    # no libc, or not glibc
         pass
 
 
 def release_free_heap() -> None:
     """Return the heap's free memory to the system (glibc ``malloc_trim(0)``; a few ms). No-op off glibc."""
-    import ctypes
-    import ctypes.util
-
     try:
-        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
+        _libc().malloc_trim(0)
+    except AttributeError:                    # no libc, or not glibc
         pass
