@@ -281,33 +281,64 @@ def test_frames_without_a_face_are_reported_skipped(take, tmp_path):
     assert report["frames"]["requested"] == 12 and report["frames"]["skipped"] == 2
 
 
-def test_the_stream_hands_the_report_its_worst_frames_decoded(take, tmp_path, monkeypatch):
-    """The streamed run keeps the images of the report's worst frames as it goes (report_html.WorstFrameImages),
-    so report.html decodes nothing after the take: the thumbnails get every frame they draw, and each is
-    the video's frame (read here with OpenCV, frame by frame)."""
+def _png(b64: str) -> np.ndarray:
+    import base64
+
+    import cv2
+
+    return cv2.imdecode(np.frombuffer(base64.b64decode(b64), np.uint8), cv2.IMREAD_COLOR).astype(np.float64)
+
+
+@pytest.mark.parametrize("formats", ["npz", "npz,overlay"])
+def test_the_stream_hands_the_report_its_worst_frames(take, tmp_path, monkeypatch, formats):
+    """The streamed run decodes the video once and keeps what the report's thumbnails need as it exports
+    (report_html.WorstFrameImages), so report.html decodes nothing after the take: with the overlay, the
+    overlay's frames, each the video's frame (read here with OpenCV); without it, the face crops that
+    detection cut (report_html.FaceCrop), each in the thumbnail's box, and the thumbnails drawn from them
+    within 35 dB of those drawn from the video's frames (a JPEG of quality 95 alone is ~40 dB; a wrong
+    crop, shift or colour order is < 20)."""
     import cv2
 
     import capture.export.report_html as rh
+    import capture.io.video as video
 
     root, actor, take_dir = take
     seen = {}
     original = rh.thumbnails
 
-    def spy(video, frames, *args, images=None, **kwargs):
+    def spy(path, frames, fits, dets, renderer, *args, images=None, **kwargs):
         seen.update(frames=list(frames), images=dict(images or {}))
-        return original(video, frames, *args, images=images, **kwargs)
+        seen["from_video"] = original(path, frames, fits, dets, renderer, *args, **kwargs)
+        seen["usable"] = {i: img.box == rh.face_box(dets[i].points, *img.frame_size)
+                          for i, img in seen["images"].items() if isinstance(img, rh.FaceCrop)}
+        def no_decoding(self, *a, **k):
+            raise AssertionError(f"the report decoded the video {a}")
+
+        with pytest.MonkeyPatch.context() as m:
+            m.setattr(video.VideoReader, "__init__", no_decoding)
+            seen["thumbs"] = original(path, frames, fits, dets, renderer, *args, images=images, **kwargs)
+        return seen["thumbs"]
 
     monkeypatch.setattr(rh, "thumbnails", spy)
     out = tmp_path / "out"
-    assert main(run_args(take_dir, actor, out, "--formats", "npz")) == 0
+    assert main(run_args(take_dir, actor, out, "--formats", formats)) == 0
     assert seen["frames"] and sorted(seen["images"]) == sorted(seen["frames"])
-    cap = cv2.VideoCapture(str(take_dir / "take.mp4"))
-    for i in range(max(seen["frames"]) + 1):
-        ok, img = cap.read()
-        assert ok
-        if i in seen["images"]:
-            np.testing.assert_array_equal(seen["images"][i], img)
-    cap.release()
+    assert [i for i, _ in seen["thumbs"]] == [i for i, _ in seen["from_video"]] == seen["frames"]
+    if "overlay" in formats:
+        cap = cv2.VideoCapture(str(take_dir / "take.mp4"))
+        for i in range(max(seen["frames"]) + 1):
+            ok, img = cap.read()
+            assert ok
+            if i in seen["images"]:
+                np.testing.assert_array_equal(seen["images"][i], img)
+        cap.release()
+    else:
+        assert all(isinstance(v, rh.FaceCrop) for v in seen["images"].values())
+        assert all(seen["usable"].values())
+    for (_, a), (_, b) in zip(seen["thumbs"], seen["from_video"]):
+        a, b = _png(a), _png(b)
+        assert a.shape == b.shape
+        assert 10 * np.log10(255.0 ** 2 / max(np.mean((a - b) ** 2), 1e-12)) > 35.0
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64") >= len(seen["frames"])
 

@@ -151,18 +151,83 @@ def worst_frames(s: TakeSeries, k: int = WORST_FRAMES) -> list[int]:
     return [int(s.frame[j]) for j in order]
 
 
+def face_box(points, width: int, height: int) -> tuple[int, int, int, int] | None:
+    """The thumbnail's crop ``(x0, y0, x1, y1)`` (px, end exclusive, inside a ``width x height`` frame): the
+    box of the finite ``points`` ``(N, 2)`` px, squared and widened by 25 % + 8 px; None when there are no
+    points or the box is 8 px or less on a side."""
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    pts = pts[np.isfinite(pts).all(1)]
+    if not len(pts):
+        return None
+    lo, hi = pts.min(0), pts.max(0)
+    c, half = 0.5 * (lo + hi), 0.5 * (hi - lo).max() * 1.25 + 8
+    x0, y0 = int(max(0, c[0] - half)), int(max(0, c[1] - half))
+    x1, y1 = int(min(width, c[0] + half)), int(min(height, c[1] + half))
+    return (x0, y0, x1, y1) if x1 - x0 > 8 and y1 - y0 > 8 else None
+
+
+@dataclass(frozen=True)
+class FaceCrop:
+    """What a thumbnail needs of a frame, kept small while the take goes by: the face's box of a
+    ``frame_size`` ``(W, H)`` frame (:func:`face_box` of its detected landmarks), scaled to the thumbnail's
+    height (never up) and stored as JPEG (quality 95: 5-25 KB, where the frame is 2.7 MB at 720p; about
+    1 ms a frame).
+
+    :meth:`frame` puts it back into a frame-sized image (black elsewhere) for the overlay's renderer; the
+    thumbnail cut from it differs from one cut from the video frame only by the JPEG and the resampling
+    (``tests/test_report_html.py`` bounds it)."""
+
+    box: tuple[int, int, int, int]
+    frame_size: tuple[int, int]
+    jpeg: bytes
+
+    @classmethod
+    def of(cls, image: np.ndarray, points, height: int = THUMB_HEIGHT) -> "FaceCrop | None":
+        """The crop of ``image`` (BGR uint8 (H, W, 3)) around ``points`` (N, 2) px; None without a box."""
+        import cv2
+
+        h, w = image.shape[:2]
+        box = face_box(points, w, h)
+        if box is None:
+            return None
+        x0, y0, x1, y1 = box
+        crop = image[y0:y1, x0:x1]
+        # halved by area averaging while twice the height is left (OpenCV's fast path: 0.3 ms for a 720 px
+        # face, against 2.7 for one area resize by 3), then bilinear by less than 2 (48 dB from area all the way)
+        while crop.shape[0] >= 2 * height and crop.shape[1] >= 2:
+            crop = cv2.resize(crop[:crop.shape[0] // 2 * 2, :crop.shape[1] // 2 * 2],
+                              (crop.shape[1] // 2, crop.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        if crop.shape[0] > height:
+            crop = cv2.resize(crop, (max(1, round(crop.shape[1] * height / crop.shape[0])), height),
+                              interpolation=cv2.INTER_LINEAR)
+        ok, jpeg = cv2.imencode(".jpg", crop, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        return cls(box, (w, h), jpeg.tobytes()) if ok else None
+
+    def frame(self) -> np.ndarray:
+        """A ``(H, W, 3)`` uint8 frame: the crop, scaled back, in its box; black elsewhere."""
+        import cv2
+
+        w, h = self.frame_size
+        x0, y0, x1, y1 = self.box
+        out = np.zeros((h, w, 3), np.uint8)
+        crop = cv2.imdecode(np.frombuffer(self.jpeg, np.uint8), cv2.IMREAD_COLOR)
+        out[y0:y1, x0:x1] = cv2.resize(crop, (x1 - x0, y1 - y0), interpolation=cv2.INTER_CUBIC)
+        return out
+
+
 class WorstFrameImages:
     """The images of a take's ``k`` worst frames, gathered while the take goes by: frames are offered in
     order with their error (:meth:`wants`, then :meth:`keep` with the image), and at most ``k`` images are
     held. At the end :attr:`images` has those of :func:`worst_frames` (the ``k`` worst frames of a take
     are among the ``k`` worst of every prefix that contains them; ties go to the earlier frame, as there).
-    ``capture run`` fills it from a second reader that follows the fit once detection is done, so the
-    report need not decode the video again after the take (:func:`thumbnails`' ``images``)."""
+    ``capture run`` fills it as it exports, with the frames the overlay's export decoded or else the
+    :class:`FaceCrop` that detection cut from the frames it had, so the report need not decode the video
+    again (:func:`thumbnails`' ``images``)."""
 
     def __init__(self, k: int = WORST_FRAMES):
         self.k = int(k)
         self._heap: list[tuple[float, int]] = []     # (error, -frame): the least bad kept frame first
-        self.images: dict[int, np.ndarray] = {}
+        self.images: dict[int, np.ndarray | FaceCrop] = {}
 
     def wants(self, frame: int, error: float | None) -> bool:
         """Would the frame be among the ``k`` worst of those offered so far?"""
@@ -170,7 +235,7 @@ class WorstFrameImages:
             return False
         return len(self._heap) < self.k or (float(error), -int(frame)) > self._heap[0]
 
-    def keep(self, frame: int, error: float, image: np.ndarray) -> None:
+    def keep(self, frame: int, error: float, image: "np.ndarray | FaceCrop") -> None:
         """Hold ``image`` for ``frame`` (after :meth:`wants` said yes); lets go of the one it displaces."""
         key = (float(error), -int(frame))
         if len(self._heap) < self.k:
@@ -309,12 +374,12 @@ def figures(s: TakeSeries) -> list[tuple[str, str]]:
 
 # ---------------------------------------------------------------------------------------- thumbnails
 def thumbnails(video: Path, frames: list[int], fits: dict[int, Any], detections: dict[int, Any], renderer,
-               height: int = THUMB_HEIGHT, images: dict[int, np.ndarray] | None = None) -> list[tuple[int, str]]:
+               height: int = THUMB_HEIGHT, images: dict[int, Any] | None = None) -> list[tuple[int, str]]:
     """``[(frame, base64 PNG)]``: the frames drawn by ``renderer`` (an overlay ``FrameRenderer``), cropped
-    to the face (the detected landmarks' box, else the fitted landmarks', with a 25 % margin).
+    to the face (:func:`face_box` of the detected landmarks, else of the fitted ones).
 
-    ``images``: frames already decoded (e.g. by :class:`WorstFrameImages`); the others are read from
-    ``video``."""
+    ``images``: frames already decoded, or their :class:`FaceCrop` (e.g. kept by :class:`WorstFrameImages`);
+    the others, and crops whose box is not the thumbnail's, are read from ``video``."""
     from concurrent.futures import ThreadPoolExecutor
 
     import cv2
@@ -323,10 +388,23 @@ def thumbnails(video: Path, frames: list[int], fits: dict[int, Any], detections:
     from capture.io.machine import usable_cores
     from capture.io.video import VideoReader
 
+    def points(i: int):
+        d = detections.get(int(i))
+        f = fits.get(int(i))
+        return d.points if d is not None and d.face_found else getattr(f, "landmarks_fit", np.zeros((0, 2)))
+
+    def usable(i: int, img) -> bool:
+        if not isinstance(img, FaceCrop):
+            return True
+        return img.box == face_box(points(i), *img.frame_size)
+
     def frames_read():
-        have = images or {}
+        have = {int(i): img for i, img in (images or {}).items() if usable(int(i), img)}
         missing = sorted(i for i in frames if int(i) not in have)
-        yield from ((int(i), have[int(i)]) for i in sorted(frames) if int(i) in have)
+        for i in sorted(frames):
+            if int(i) in have:
+                img = have[int(i)]
+                yield int(i), img.frame() if isinstance(img, FaceCrop) else img
         if missing:
             with VideoReader(video) as reader:
                 yield from reader.frames(missing)
@@ -337,18 +415,9 @@ def thumbnails(video: Path, frames: list[int], fits: dict[int, Any], detections:
             return None
         d = detections.get(int(i))
         drawn = renderer.render(img, f, d, getattr(f, "vertices", None))
-        pts = np.asarray(d.points if d is not None and d.face_found else getattr(f, "landmarks_fit", np.zeros((0, 2))),
-                         np.float64).reshape(-1, 2)
-        pts = pts[np.isfinite(pts).all(1)]
         h, w = drawn.shape[:2]
-        if len(pts):
-            lo, hi = pts.min(0), pts.max(0)
-            c, half = 0.5 * (lo + hi), 0.5 * (hi - lo).max() * 1.25 + 8
-            x0, y0 = int(max(0, c[0] - half)), int(max(0, c[1] - half))
-            x1, y1 = int(min(w, c[0] + half)), int(min(h, c[1] + half))
-            crop = drawn[y0:y1, x0:x1] if x1 - x0 > 8 and y1 - y0 > 8 else drawn
-        else:
-            crop = drawn
+        box = face_box(points(i), w, h)
+        crop = drawn if box is None else drawn[box[1]:box[3], box[0]:box[2]]
         scale = height / crop.shape[0]
         crop = cv2.resize(crop, (max(1, int(round(crop.shape[1] * scale))), height), interpolation=cv2.INTER_AREA)
         ok, png = cv2.imencode(".png", crop)

@@ -15,9 +15,10 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
     fit thread      receives the fits, writes the fit's chunks
     main thread     the exporters (and a second VideoReader when the overlay needs images; the overlay's
                     frames are drawn by two threads of its own, capture.export.overlay) -> files;
-                    the progress bar ("fit", as capture batch follows it) counts the frames written
-    worst-frames    once detection is done: a VideoReader that follows the exported frames and keeps
-    thread          the images of the worst so far for report.html (report_html.WorstFrameImages)
+                    the progress bar ("fit", as capture batch follows it) counts the frames written;
+                    the images of the worst frames so far for report.html (report_html.WorstFrameImages):
+                    the overlay's frames, or else the face crops that detection cut from its frames
+                    (report_html.FaceCrop, a JPEG of 5-25 KB a frame until exported): the video is decoded once
 
 Queues hold at most :data:`QUEUE_FRAMES` frames, the fit process at most :data:`FIT_BACKLOG_FRAMES` rows
 not yet read (detection waits when the fit or the export falls behind: :meth:`FitWorker.feed`'s
@@ -284,7 +285,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     from capture.detector.runtime import Lane, TrackState
     from capture.export import EXPORTERS, open_exporters
     from capture.export.overlay_draw import confident_rms
-    from capture.export.report_html import SeriesCollector, WorstFrameImages
+    from capture.export.report_html import FaceCrop, SeriesCollector, WorstFrameImages
     from capture.fit.process import FitStopped, FitWorker
     from capture.io.video import FramePool, VideoReader
     from capture.run.stages import DONE_JSON, EXPORT_JSON, FIT_CHUNK, LANDMARKS, fit_dir_for, fit_key, windowed_fit
@@ -319,6 +320,19 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     stage_dir.mkdir(parents=True, exist_ok=True)
 
     pool = FramePool()               # decoded frames' buffers, given back after detection: no page faults per frame
+    want_images = any(EXPORTERS[f].needs_image for f in formats)
+    # the report's thumbnails of the worst frames: where no export reads the video's frames, detection keeps
+    # the face of every frame it detects, small, until the frame is exported (and its error known)
+    face_crops: dict[int, FaceCrop | None] = {}
+
+    def keep_faces(lanes) -> None:
+        if want_images:
+            return
+        for lane in lanes:
+            image = dict(zip(lane.indices, lane.frames))
+            for r in lane.results:
+                if r.frame_index in wanted and r.face_found and r.frame_index in image:
+                    face_crops[int(r.frame_index)] = FaceCrop.of(image[r.frame_index], r.points)
 
     def decode():
         background_thread()          # it runs ahead of the fit, which sets the pace (capture.io.priority)
@@ -357,6 +371,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                             ids = [i for i in range(g, g + plan.seg_len[g]) if i in buf]
                             lanes.append(Lane(ids, [buf[i] for i in ids], state))
                         det.run_lanes(lanes, q, batch_size=len(group))
+                        keep_faces(lanes)
                         pool.give(buf.values())     # the detector keeps no frame: decoded into again
                         del buf
                         for lane, res in zip(lanes, results):
@@ -384,7 +399,6 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
             raise CaptureError(f"video {Path(cfg.video).name} ends before frame {lost} (its header says "
                                f"{plan.info.frame_count} frames); request frames below {lost}")
         landmarks.put(_END)
-        detected_all.set()
 
     def rows():
         """The fit's rows, with the plausibility check of capture.run.checks frame by frame."""
@@ -448,35 +462,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                                **{k: v for k, v in timings.items() if isinstance(v, (int, float))}}
         fits.put(_END)
 
-    # the report's worst frames, decoded while the fit finishes: once detection is done a second reader
-    # follows the exported frames (their errors) and keeps the images of the worst so far (WorstFrameImages),
-    # on the core that the decoder and the detector left; the report then decodes nothing after the take
-    detected_all = threading.Event()
     worst = WorstFrameImages()
-    errors: dict[int, float | None] = {}
-    errors_cv = threading.Condition()
-    exported_all = [False]
-
-    def worst_images():
-        background_thread()
-        while not detected_all.wait(0.1):
-            if pipe_line.stop.is_set():
-                return
-        try:
-            with VideoReader(cfg.video) as thumbs_reader:
-                for i in plan.wanted:
-                    with errors_cv:
-                        while i not in errors and not exported_all[0] and not pipe_line.stop.is_set():
-                            errors_cv.wait(0.1)
-                        if pipe_line.stop.is_set():
-                            return
-                        e = errors.get(i)
-                    if worst.wants(i, e):
-                        got = next(iter(thumbs_reader.frames([i])), None)
-                        if got is not None:
-                            worst.keep(i, e, got[1])
-        except Exception:    # the report reads whatever is missing from the video itself
-            return
 
     # export, in this thread. The writers are opened (pxr, av imported) before the other stages start:
     # a C extension loading in one thread while another runs torch or FFmpeg can deadlock.
@@ -485,7 +471,6 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     previous = set((state or {}).get("files", [])) | set((state or {}).get("previous_files", []))
     write_json(state_path, {"key": None, "status": "running", "files": [], "previous_files": sorted(previous)})
     ctx = replace(export_context, options=replace(export_context.options, overwrite=True))
-    want_images = any(EXPORTERS[f].needs_image for f in formats)
     series = SeriesCollector(inputs.actor.config.n_expressions)
     # the fit's process is forked before any thread of this run starts; a fit in a thread (no fork, e.g. a Ray
     # worker) starts importing torch at once, so the writers (pxr) are opened before it: pxr's loading in one
@@ -506,8 +491,6 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
             pipe_line.start("detect", detect, clocks["detect"])
             pipe_line.start("feed", feed, clocks["feed"])
             pipe_line.start("fit", fit, clocks["fit"])
-            thumbs = threading.Thread(target=worst_images, name="capture-worst-frames", daemon=True)
-            thumbs.start()
             source = iter(reader.frames(plan.wanted)) if reader is not None else None
             try:
                 for ff in fits:
@@ -520,15 +503,13 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                     detection = detection_factory(_take_landmarks(unexported, int(ff.frame)))
                     writers.write(ff, image, detection)
                     series.add(ff)         # the report's series, while the fit works on (not read back)
-                    with errors_cv:
-                        errors[int(ff.frame)] = confident_rms(ff, detection)
-                        errors_cv.notify_all()
+                    face = image if image is not None else face_crops.pop(int(ff.frame), None)
+                    error = confident_rms(ff, detection)
+                    if face is not None and worst.wants(int(ff.frame), error):
+                        worst.keep(int(ff.frame), error, face)
                     clocks["export"].busy += time.perf_counter() - t0
                     bar.advance(1)
                 pipe_line.check()
-                with errors_cv:
-                    exported_all[0] = True
-                    errors_cv.notify_all()
                 t_close = time.perf_counter()     # the writers finish (USD's last block, NPZ) as the block ends
             finally:
                 if reader is not None:
@@ -543,7 +524,6 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         worker.close()
         raise
     clocks["export"].busy += time.perf_counter() - t_close
-    thumbs.join()
     pipe_line.close()
     worker.close()
     pipe_line.check()
