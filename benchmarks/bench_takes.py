@@ -118,13 +118,16 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--window", type=int, default=30)
     ap.add_argument("--overlap", type=int, default=6)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--paper-frames", type=int, default=8)
+    ap.add_argument("--paper-frames", type=int, default=8, help="frames of the paper preset's one window (>= 2)")
     ap.add_argument("--paper-iterations", type=int, default=2000, help="measured iterations of the paper preset "
                     "(its 1e4 are extrapolated linearly from these)")
     ap.add_argument("--takes", help="comma-separated take names (default: all)")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results"))
     ap.add_argument("--quick", action="store_true", help="check that it runs: 1 take of 6 frames at 320x240")
     args = ap.parse_args(argv)
+    if args.paper_frames < 2:
+        ap.error(f"--paper-frames must be at least 2 (the paper preset is fitted side by side on that many frames), "
+                 f"got {args.paper_frames}")
     import torch
 
     from capture.actor.package import load_actor
