@@ -235,7 +235,7 @@ class WorstFrameImages:
             return False
         return len(self._heap) < self.k or (float(error), -int(frame)) > self._heap[0]
 
-    def keep(self, frame: int, error: float, image: "np.ndarray | FaceCrop") -> None:
+    def keep(self, frame: int, error: float, image: np.ndarray | FaceCrop) -> None:
         """Hold ``image`` for ``frame`` (after :meth:`wants` said yes); lets go of the one it displaces."""
         key = (float(error), -int(frame))
         if len(self._heap) < self.k:

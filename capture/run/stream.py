@@ -323,7 +323,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     want_images = any(EXPORTERS[f].needs_image for f in formats)
     # the report's thumbnails of the worst frames: where no export reads the video's frames, detection keeps
     # the face of every frame it detects, small, until the frame is exported (and its error known)
-    face_crops: dict[int, FaceCrop | None] = {}
+    face_crops: dict[int, FaceCrop] = {}
 
     def keep_faces(lanes) -> None:
         if want_images:
@@ -332,7 +332,9 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
             image = dict(zip(lane.indices, lane.frames))
             for r in lane.results:
                 if r.frame_index in wanted and r.face_found and r.frame_index in image:
-                    face_crops[int(r.frame_index)] = FaceCrop.of(image[r.frame_index], r.points)
+                    crop = FaceCrop.of(image[r.frame_index], r.points)
+                    if crop is not None:       # no box (the report then reads that frame from the video)
+                        face_crops[int(r.frame_index)] = crop
 
     def decode():
         background_thread()          # it runs ahead of the fit, which sets the pace (capture.io.priority)
