@@ -58,7 +58,7 @@ def demo_actor(cfg: DemoConfig, say) -> Path:
         say(f"actor: the bundled pretrained demo actor, copied to {actor}")
         return actor
     say(f"actor: no pretrained demo actor bundled; training a QUICK, LOW-ACCURACY actor from the sample "
-        f"(width {cfg.train_width}, {cfg.train_iterations} iterations of {cfg.train_points_per_step} points; the real one takes ~8 min on 2 cores: "
+        f"(width {cfg.train_width}, {cfg.train_iterations} iterations of {cfg.train_points_per_step} points; the real one takes ~9 min on 2 cores with AMX: "
         f"capture actor train sample --sample)")
     from capture.actor.sample import sample_bones, sample_shapes_dir
     from capture.actor.training import TrainOptions, TrainingProgress, train_actor

@@ -293,23 +293,30 @@ def test_unfinished_training_without_mirrors_says_how_to_resume(tmp_path, monkey
     assert "smirk_R" not in meta["shape_names"] and meta["training"]["iterations"] == 6
 
 
-def test_unfinished_training_without_the_input_chart_says_how_to_resume(tmp_path, monkeypatch, capsys):
-    """A training interrupted under ``--input-chart 0`` (or begun before the chart was the default: the same
-    fingerprint) is not resumed with a chart: the default run names ``--input-chart 0``, which resumes it."""
+@pytest.mark.parametrize("before, now, recorded", [
+    (["--input-chart", "0"], [], lambda meta: meta["training"]["input_chart"] == {"fraction": 0.0}),
+    (["--points-per-step", "0"], ["--points-per-step", "50"],
+     lambda meta: meta["training"]["settings"]["points_per_step"] == 0),
+])
+def test_unfinished_training_under_an_earlier_default_says_how_to_resume(tmp_path, monkeypatch, capsys, before, now,
+                                                                         recorded):
+    """A training interrupted under ``--input-chart 0`` or ``--points-per-step 0`` (or begun before the chart, or
+    sampled steps, were the default: the same fingerprint) is not resumed under other settings: the run names the
+    flag, which resumes it."""
     shapes, skull, jaw, _, _ = _one_sided_inputs(tmp_path)
     args = ["--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw), "--iterations", "6", *FAST]
     restore = _interrupt_at(monkeypatch, 3)
     actor = tmp_path / "a"
-    assert main(["actor", "train", str(actor), *args, "--input-chart", "0"]) == 130
+    assert main(["actor", "train", str(actor), *args, *before]) == 130
     restore()
     capsys.readouterr()
-    assert main(["actor", "train", str(actor), *args]) == 2
+    assert main(["actor", "train", str(actor), *args, *now]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "--input-chart 0 to resume it" in err, err
-    assert main(["actor", "train", str(actor), *args, "--input-chart", "0"]) == 0
+    assert len(err.splitlines()) == 1 and f"{' '.join(before)} to resume it" in err, err
+    assert main(["actor", "train", str(actor), *args, *before]) == 0
     assert "resuming training" in capsys.readouterr().err
     meta = json.loads((actor / "actor.json").read_text())
-    assert meta["training"]["iterations"] == 6 and meta["training"]["input_chart"] == {"fraction": 0.0}
+    assert meta["training"]["iterations"] == 6 and recorded(meta)
 
 
 def test_asymmetric_plane_warns_that_mirrors_are_rough(tmp_path):

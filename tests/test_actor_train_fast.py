@@ -162,6 +162,40 @@ def test_importance_sampling_is_unbiased_and_looks_where_the_error_is(trainer):
     assert s.weights is None and len(set(s.index.tolist())) == len(s.index) == 400
 
 
+def test_sampled_steps_give_way_to_steps_on_every_point_and_the_work_counts_them(trainer):
+    n = trainer.data.template.shape[0]
+    half = ActorTrainer.__new__(ActorTrainer)
+    half.__dict__.update(trainer.__dict__, settings=replace(trainer.settings, sampled_until=0.5, importance=0.0))
+    half.iteration = 49                                    # the last sampled step of 100
+    assert len(half._sample().index) == 400
+    half.iteration = 50
+    s = half._sample()
+    assert s is None or s.index is None                    # every point from here on
+    assert half.work(0) == 0 and half.work(50) == pytest.approx(50 * 400 / n)
+    assert half.work(100) == pytest.approx(50 * 400 / n + 50)
+    assert trainer.work(100) == pytest.approx(100 * 400 / n)   # sampled to the end (sampled_until 1)
+
+
+def test_time_left_reckons_with_steps_of_different_cost():
+    lines, now = [], [0.0]
+    progress = TrainingProgress(enabled=False, interval_s=60.0, write=lines.append, clock=lambda: now[0])
+    work = lambda i: 0.25 * min(i, 500) + max(i - 500, 0)   # 500 steps at a quarter of the cost, then full ones
+    with progress.session(total=1000, start=0, work=work) as update:
+        for it in range(1, 1001):
+            now[0] += 0.25 if it <= 500 else 1.0           # 1 s per full step
+            update(it, 1e-3, 0.08)
+    # after 60 s: 240 cheap steps done (60 units); left 260 cheap + 500 full = 565 units at 1 s each
+    assert "iteration 240/1000" in lines[0] and "9.4 min left" in lines[0], lines[0]
+    assert "iteration 1000/1000" in lines[-1] and "0 s left" in lines[-1]
+    # every line's time left is the true one to within the step it was printed at
+    for line in lines[:-1]:
+        it = int(line.split("iteration ")[1].split("/")[0])
+        true_left = 0.25 * max(500 - it, 0) + min(500, 1000 - it)
+        left = line.split("elapsed, about ")[1].split(" left")[0]
+        shown = float(left[:-4]) * 60 if left.endswith(" min") else float(left[:-2])
+        assert abs(shown - true_left) <= 3 + 0.001 * true_left, (line, true_left)
+
+
 def test_no_progress_prints_a_line_per_minute_with_time_left():
     lines, now = [], [0.0]
     progress = TrainingProgress(enabled=False, interval_s=60.0, write=lines.append, clock=lambda: now[0])

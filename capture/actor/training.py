@@ -325,7 +325,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
         del resolved["settings"]["input_chart"]
     # How Adam's moments meet the closed-form solves, and how many constrained points a step draws, change the
     # path, not the problem: not part of what a resumed training must match (actor.json records them).
-    for path_only in ("keep_moments_at_solves", "constraint_points_per_step"):
+    for path_only in ("keep_moments_at_solves", "constraint_points_per_step", "sampled_until"):
         del resolved["settings"][path_only]
     fingerprint_no_mirror = _fingerprint(inputs, resolved)   # a training without mirrors keeps the fingerprint it had
     if options.mirror:                                         # before they existed, so it still resumes
@@ -346,6 +346,11 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                 raise CaptureError(f"actor '{options.actor}' has an unfinished training started without the input chart "
                                    f"(before it was the default); add --input-chart 0 to resume it, or pass --overwrite "
                                    f"to start over with it")
+            every_point = {**resolved, "settings": {**resolved["settings"], "points_per_step": 0}}
+            if not options.overwrite and settings.points_per_step and state.get("fingerprint") == _fingerprint(inputs, every_point):
+                raise CaptureError(f"actor '{options.actor}' has an unfinished training that steps on every point "
+                                   f"(--points-per-step 0, the default before sampled steps); add --points-per-step 0 to "
+                                   f"resume it, or pass --overwrite to start over")
             if not options.overwrite:
                 raise CaptureError(f"actor '{options.actor}' has an unfinished training with other shapes or settings "
                                    f"at {out}; rerun that command to resume it, or pass --overwrite to start over")
@@ -391,7 +396,7 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
         torch.set_num_threads(options.threads)
     threads_used = torch.get_num_threads()
     with sigterm_as_interrupt(), _restore_threads(threads_before), \
-            progress.session(settings.iterations, trainer.iteration) as update:
+            progress.session(settings.iterations, trainer.iteration, trainer.work) as update:
         try:
             while trainer.iteration < settings.iterations:
                 terms = trainer.step()
@@ -483,8 +488,9 @@ def _minutes(seconds: float) -> str:
     return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
 
 
-def time_left(done_here: int, seconds_here: float, remaining: int) -> float | None:
-    """Seconds left for ``remaining`` iterations at the rate of this session (None before any step)."""
+def time_left(done_here: float, seconds_here: float, remaining: float) -> float | None:
+    """Seconds left for ``remaining`` work (iterations, or steps' costs) at the rate of this session (None before
+    any step)."""
     if done_here <= 0 or seconds_here <= 0:
         return None
     return remaining * seconds_here / done_here
@@ -505,25 +511,30 @@ class TrainingProgress:
         self.clock = clock
 
     @contextlib.contextmanager
-    def session(self, total: int, start: int):
+    def session(self, total: int, start: int, work: Callable[[int], float] | None = None):
+        """Progress of iterations ``start..total``; ``work(i)`` is the cost of the first i of them (default i),
+        from which the time left is reckoned when steps differ in cost."""
+        work = work or float
         if not self.enabled:
-            yield self._line_updater(total, start)
+            yield self._line_updater(total, start, work)
             return
-        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+        from rich.progress import (BarColumn, Progress, TextColumn, TimeElapsedColumn,
                                    TimeRemainingColumn)
 
-        columns = [TextColumn("training"), BarColumn(), MofNCompleteColumn(),
+        # The bar counts work, so that its time left holds when steps differ in cost; the text counts iterations.
+        columns = [TextColumn("training"), BarColumn(), TextColumn("{task.fields[iteration]}/" + str(total)),
                    TextColumn("loss {task.fields[loss]:.3e}  error {task.fields[err]:.4f} mm"),
                    TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn()]
         with Progress(*columns, transient=False) as bar:
-            task = bar.add_task("train", total=total, completed=start, loss=float("nan"), err=float("nan"))
+            task = bar.add_task("train", total=work(total), completed=work(start), iteration=start, loss=float("nan"),
+                                err=float("nan"))
 
             def update(iteration: int, loss: float, err: float) -> None:
-                bar.update(task, completed=iteration, loss=loss, err=err)
+                bar.update(task, completed=work(iteration), iteration=iteration, loss=loss, err=err)
 
             yield update
 
-    def _line_updater(self, total: int, start: int) -> Callable[[int, float, float], None]:
+    def _line_updater(self, total: int, start: int, work: Callable[[int], float]) -> Callable[[int, float, float], None]:
         t0 = self.clock()
         last = [t0]
 
@@ -533,6 +544,6 @@ class TrainingProgress:
                 return
             last[0] = now
             self.write(progress_line(iteration, total, loss, err, now - t0,
-                                     time_left(iteration - start, now - t0, total - iteration)))
+                                     time_left(work(iteration) - work(start), now - t0, work(total) - work(iteration))))
 
         return update

@@ -44,7 +44,7 @@ def train_command(
     lr: Optional[float] = typer.Option(None, help="Adam learning rate (default: from the preset)."),
     width: Optional[int] = typer.Option(None, help="SIREN hidden width (default: from the preset; the paper uses 256)."),
     depth: Optional[int] = typer.Option(None, help="Number of SIREN sine layers (default: from the preset)."),
-    points_per_step: Optional[int] = typer.Option(None, help="Template points per step, 0 = all (default: from the preset)."),
+    points_per_step: Optional[int] = typer.Option(None, help="Template points drawn per step, 0 = all (default: from the preset; the default preset draws 4,096 in the first 85 % of the steps, then steps on every point)."),
     seed: Optional[int] = typer.Option(None, help="Random seed (default: from the preset)."),
     hidden_matmul: Optional[str] = typer.Option(None, "--hidden-matmul", help="Precision of the hidden layers' products in the first 85 % of the steps: fp32, bf16, or auto (bf16 where the CPU multiplies it in hardware: AMX, AVX-512 BF16, ARM BF16; elsewhere where it is timed 2x faster; default: from the preset). Solves, evaluations and the last steps are float32."),
     input_chart: Optional[float] = typer.Option(None, "--input-chart", help="The networks read each point this fraction of the way to the shape that parts the neutral's touching lips (jawOpen), so that the lips are apart where the networks look; 0 = at the point itself, as in the paper (default: from the preset, 0.3; paper 0)."),
