@@ -341,16 +341,20 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                 raise CaptureError(f"actor '{options.actor}' has an unfinished training started without mirrored shapes "
                                    f"(--no-mirror, or before they were the default); add --no-mirror to resume it, or "
                                    f"pass --overwrite to start over with them")
-            unchanged = {**resolved, "settings": {k: v for k, v in resolved["settings"].items() if k != "input_chart"}}
-            if not options.overwrite and settings.input_chart and state.get("fingerprint") == _fingerprint(inputs, unchanged):
-                raise CaptureError(f"actor '{options.actor}' has an unfinished training started without the input chart "
-                                   f"(before it was the default); add --input-chart 0 to resume it, or pass --overwrite "
-                                   f"to start over with it")
-            every_point = {**resolved, "settings": {**resolved["settings"], "points_per_step": 0}}
-            if not options.overwrite and settings.points_per_step and state.get("fingerprint") == _fingerprint(inputs, every_point):
-                raise CaptureError(f"actor '{options.actor}' has an unfinished training that steps on every point "
-                                   f"(--points-per-step 0, the default before sampled steps); add --points-per-step 0 to "
-                                   f"resume it, or pass --overwrite to start over")
+            # Settings that were the default before: a training begun under one fingerprinted them so (a training
+            # without the chart has no input_chart key); the message names the flag that resumes it.
+            earlier_defaults = (
+                (settings.input_chart, {k: v for k, v in resolved["settings"].items() if k != "input_chart"},
+                 "started without the input chart (before it was the default); add --input-chart 0 to resume it, or "
+                 "pass --overwrite to start over with it"),
+                (settings.points_per_step, {**resolved["settings"], "points_per_step": 0},
+                 "that steps on every point (--points-per-step 0, the default before sampled steps); add "
+                 "--points-per-step 0 to resume it, or pass --overwrite to start over"),
+            )
+            for in_effect, earlier, what in earlier_defaults:
+                if (not options.overwrite and in_effect
+                        and state.get("fingerprint") == _fingerprint(inputs, {**resolved, "settings": earlier})):
+                    raise CaptureError(f"actor '{options.actor}' has an unfinished training {what}")
             if not options.overwrite:
                 raise CaptureError(f"actor '{options.actor}' has an unfinished training with other shapes or settings "
                                    f"at {out}; rerun that command to resume it, or pass --overwrite to start over")
