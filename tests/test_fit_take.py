@@ -197,5 +197,32 @@ def test_warm_state_carries_the_base_of_the_overlap_frames():
         torch.testing.assert_close(st[k][:2], prev[k][4:6], msg=k)
         torch.testing.assert_close(st[k][2:], prev[k][5:6].expand_as(st[k][2:]), msg=k)
     torch.testing.assert_close(st["head_R0"][:2], prev["head_R0"][4:6])
-    torch.testing.assert_close(st["head_t0"][2:], t_new[2:])
-    torch.testing.assert_close(st["head_R0"][2:], R_new[2:])
+    torch.testing.assert_close(st["head_t0"][:2], prev["head_t0"][4:6])
+
+
+def test_warm_state_moves_the_new_frames_by_the_last_overlap_frames_correction():
+    """New frames start at their initial pose moved by the rigid correction the solve made at the last
+    overlap frame: if the solve moved every initial pose by one rigid transform, the new frames get it;
+    without overlap they start at their initial poses."""
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from capture.fit.take import _warm_state
+
+    g = torch.Generator().manual_seed(0)
+    R_init = torch.tensor(Rotation.random(9, random_state=1).as_matrix(), dtype=torch.float64)  # frames 10-18
+    t_init = 600.0 + 20 * torch.randn(9, 3, generator=g, dtype=torch.float64)
+    C = torch.tensor(Rotation.from_rotvec([0.05, -0.1, 0.02]).as_matrix(), dtype=torch.float64)
+    d = torch.tensor([3.0, -2.0, 15.0], dtype=torch.float64)
+    solved_R, solved_t = C @ R_init, t_init @ C.T + d
+    prev = {"head_R0": solved_R[:6].clone(), "head_t0": solved_t[:6].clone(), "coeff0": torch.zeros(6, 2)}
+    st = _warm_state(prev, 10, 16, 14, 5, R_init[4:], t_init[4:])   # frames 14, 15 overlap; 16-18 are new
+    torch.testing.assert_close(st["head_R0"], solved_R[4:])
+    torch.testing.assert_close(st["head_t0"], solved_t[4:])
+    # a correction that differs from frame to frame: the new frames take the last overlap frame's (frame 15)
+    prev["head_R0"][4] = R_init[4]
+    st = _warm_state(prev, 10, 16, 14, 5, R_init[4:], t_init[4:])
+    torch.testing.assert_close(st["head_R0"][2:], solved_R[6:])
+    st = _warm_state(prev, 10, 16, 16, 3, R_init[6:], t_init[6:])   # no overlap: the initial poses
+    torch.testing.assert_close(st["head_R0"], R_init[6:])
+    torch.testing.assert_close(st["head_t0"], t_init[6:])

@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from capture.export.report_html import figures, render_html, shoot_html, take_series, worst_frames
+from capture.export.report_html import flag_spans, figures, render_html, shoot_html, take_series, worst_frames
 from capture.export.rig import R_FRONT
 
 
@@ -75,6 +75,32 @@ def test_take_series_against_hand_values():
     assert not s.face_found[3] and s.face_found.sum() == 11
     assert np.isnan(s.error[3])
     assert worst_frames(s, 3) == [21, 20, 19]
+
+
+def test_flag_spans_cover_exactly_the_flagged_frames_one_span_per_stretch():
+    """The report shades bridged (orange) and faceless (red) frames: the merged spans cover the same x as
+    one span per flagged frame (the readable reference), and there is one span per stretch of consecutive
+    frames of one colour, not one per frame."""
+    rng = np.random.default_rng(3)
+    T = 400
+    frame = np.cumsum(rng.choice([1, 1, 1, 1, 2], T))            # gaps in the frame numbers split stretches
+    status = rng.choice(["fitted", "bridged", "skipped"], T, p=[0.6, 0.3, 0.1]).tolist()
+    face = rng.random(T) > 0.05                                  # fitted frames without a face are red too
+    s = SimpleNamespace(frame=frame, status=status, face_found=face)
+    per_frame = [(f - 0.5, f + 0.5, "#f4a261" if st == "bridged" else "#e76f51")
+                 for f, st, ok in zip(frame, status, face) if st != "fitted" or not ok]
+    spans = flag_spans(s)
+    grid = np.arange(frame[0] - 1, frame[-1] + 1, 0.25) + 0.125  # points between the half-frame borders
+    for colour in ("#f4a261", "#e76f51"):
+        def covered(sp):
+            return np.any([(grid > a) & (grid < b) for a, b, c in sp if c == colour], axis=0)
+        np.testing.assert_array_equal(covered(spans), covered(per_frame))
+    flagged = [st != "fitted" or not ok for st, ok in zip(status, face)]
+    colours = ["#f4a261" if st == "bridged" else "#e76f51" for st in status]
+    stretches = sum(flagged[j] and not (j > 0 and flagged[j - 1] and colours[j - 1] == colours[j]
+                                        and frame[j] == frame[j - 1] + 1) for j in range(T))
+    assert len(spans) == stretches < len(per_frame)
+    assert all(b0 > a1 or c0 != c1 for (_, a1, c1), (b0, _, c0) in zip(spans, spans[1:]))
 
 
 def test_render_html_is_self_contained():

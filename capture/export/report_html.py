@@ -270,11 +270,26 @@ def _subplots(plt, figsize: tuple[float, float], ncols: int = 1, left_in: float 
     return fig, axes
 
 
-def _shade_flags(ax, s: TakeSeries) -> None:
+def flag_spans(s: TakeSeries) -> list[tuple[float, float, str]]:
+    """``[(x0, x1, colour)]``: the stretches of consecutive video frames that were bridged (orange) or had
+    no face otherwise (red), each frame ``[i - 0.5, i + 0.5]``; one span per stretch, so a long take with
+    thousands of lost frames draws a few dozen patches, not one per frame."""
+    spans: list[tuple[float, float, str]] = []
     for j, st in enumerate(s.status):
-        if st != "fitted" or not s.face_found[j]:
-            colour = "#f4a261" if st == "bridged" else "#e76f51"
-            ax.axvspan(s.frame[j] - 0.5, s.frame[j] + 0.5, color=colour, alpha=0.25, lw=0)
+        if st == "fitted" and s.face_found[j]:
+            continue
+        colour = "#f4a261" if st == "bridged" else "#e76f51"
+        x0, x1 = float(s.frame[j]) - 0.5, float(s.frame[j]) + 0.5
+        if spans and spans[-1][2] == colour and spans[-1][1] == x0:
+            spans[-1] = (spans[-1][0], x1, colour)
+        else:
+            spans.append((x0, x1, colour))
+    return spans
+
+
+def _shade_flags(ax, s: TakeSeries) -> None:
+    for x0, x1, colour in flag_spans(s):
+        ax.axvspan(x0, x1, color=colour, alpha=0.25, lw=0)
 
 
 def figures(s: TakeSeries) -> list[tuple[str, str]]:

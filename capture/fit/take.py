@@ -11,7 +11,8 @@ neurally reparameterised sequence fit (:mod:`models.fit`):
   shorter). Each window after the first is warm-started from the previous one: ``F_T`` and ``F_W``
   are copied, the overlap frames' codes and base (head and jaw pose, coefficient offsets) are the
   previous window's of the same frames, the new frames' codes and jaw/coefficient base start at the
-  previous window's last frame's, their head base at their initial pose. The first window runs
+  previous window's last frame's, their head base at their initial pose moved by the correction the
+  solve made at the last overlap frame (:func:`_warm_state`). The first window runs
   ``settings.iterations``, later ones ``settings.warm_iterations`` (both may stop early, see
   :class:`~models.fit.FitSettings`).
 * **Seams**: every per-frame output of an overlap frame is the blend of the two windows' solutions
@@ -257,9 +258,12 @@ def _warm_state(prev: dict, prev_start: int, prev_end: int, start: int, n_frames
     """The previous window's state moved to ``[start, start + n_frames)`` (see the module docstring).
 
     Per-frame tensors (codes and the base: jaw pose, coefficient offsets) of the overlap frames are
-    the previous window's of the same frames, new frames take the previous window's last frame's;
-    the head base is the new window's initial pose except on the overlap frames, which keep the
-    previous window's (the same initial pose unless a Levenberg-Marquardt solve refined it).
+    the previous window's of the same frames, new frames take the previous window's last frame's.
+    The head base keeps the previous window's on the overlap frames; a new frame's is its initial pose
+    ``(head_R0, head_t0)`` (camera frame, ``x_cam = R x + t``) moved by the correction the solve made
+    at the last overlap frame: with ``C = R_s R_i^T`` and ``d = t_s - C t_i`` (solved ``s`` and initial
+    ``i`` pose there), ``(C R, C t + d)``. So the new frames start where the solved motion goes on, not
+    with a step back to the initial poses that the solve's smooth-motion prior would have to undo.
     """
     state = dict(prev)
     n_ov = max(0, min(prev_end - start, n_frames))
@@ -274,8 +278,13 @@ def _warm_state(prev: dict, prev_start: int, prev_end: int, start: int, n_frames
     for k in ("codes", "jaw_R0", "jaw_t0", "coeff0", "field"):
         if k in prev:
             state[k] = moved(prev[k])
-    state["head_R0"] = moved(prev["head_R0"], head_R0)
-    state["head_t0"] = moved(prev["head_t0"], head_t0)
+    R, t = head_R0, head_t0
+    if n_ov:
+        C = prev["head_R0"][off + n_ov - 1] @ head_R0[n_ov - 1].transpose(-1, -2)
+        d = prev["head_t0"][off + n_ov - 1] - C @ head_t0[n_ov - 1]
+        R, t = C @ head_R0, head_t0 @ C.transpose(-1, -2) + d
+    state["head_R0"] = moved(prev["head_R0"], R)
+    state["head_t0"] = moved(prev["head_t0"], t)
     return state
 
 
