@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from capture.export.report_html import flag_spans, figures, render_html, shoot_html, take_series, worst_frames
+from capture.export.report_html import confidence_stats, flag_spans, figures, render_html, shoot_html, take_series, worst_frames
 from capture.export.rig import R_FRONT
 
 
@@ -75,6 +75,28 @@ def test_take_series_against_hand_values():
     assert not s.face_found[3] and s.face_found.sum() == 11
     assert np.isnan(s.error[3])
     assert worst_frames(s, 3) == [21, 20, 19]
+
+
+def test_confidence_stats_equal_numpy_row_by_row():
+    """The series' confidence median, 10th percentile and share >= 0.5, all rows at once, against np.median,
+    np.percentile and a mean over each row's finite values (rows with NaN, inf, one, two or no finite value)."""
+    from capture.export.report_html import CONFIDENT
+
+    rng = np.random.default_rng(1)
+    c = rng.random((300, 37))
+    c[rng.random(c.shape) < 0.2] = np.nan
+    c[3] = np.nan
+    c[4, :36] = np.inf
+    c[5, :35] = np.nan
+    c[6, ::2] = CONFIDENT                      # ties at the threshold count as confident
+    med, p10, share = confidence_stats(c)
+    for i, row in enumerate(c):
+        r = row[np.isfinite(row)]
+        if r.size == 0:
+            assert np.isnan([med[i], p10[i], share[i]]).all()
+            continue
+        assert abs(med[i] - np.median(r)) < 1e-12 and abs(p10[i] - np.percentile(r, 10)) < 1e-12
+        assert share[i] == (r >= CONFIDENT).mean()
 
 
 def test_flag_spans_cover_exactly_the_flagged_frames_one_span_per_stretch():

@@ -114,6 +114,7 @@ class SeriesCollector:
                 jitter[j - 1] = rows["acc"][j]
         face = np.ones(T, bool)
         med, p10, share = (np.full(T, np.nan) for _ in range(3))
+        rows_of: dict[int, list] = {}          # the frames' confidences, by landmark count
         for j, i in enumerate(frame):
             d = None if detections is None else detections.get(int(i))
             if d is None:
@@ -121,10 +122,11 @@ class SeriesCollector:
             face[j] = bool(d.face_found)
             c = getattr(d, "confidence", None)
             if c is not None and d.face_found:
-                c = np.asarray(c, np.float64)
-                c = c[np.isfinite(c)]
-                if c.size:
-                    med[j], p10[j], share[j] = np.median(c), np.percentile(c, 10), (c >= CONFIDENT).mean()
+                c = np.asarray(c, np.float64).reshape(-1)
+                rows_of.setdefault(c.size, []).append((j, c))
+        for rows_c in rows_of.values():
+            idx = np.array([j for j, _ in rows_c])
+            med[idx], p10[idx], share[idx] = confidence_stats(np.stack([c for _, c in rows_c]))
         err = np.array([np.nan if errors.get(int(i)) is None else float(errors[int(i)]) for i in frame])
         stack = (lambda k, shape: np.stack(rows[k]) if T else np.zeros((0,) + shape))
         return TakeSeries(frame=frame, time_s=frame / float(fps), status=list(rows["status"]), error=err,
@@ -133,6 +135,31 @@ class SeriesCollector:
                           jaw_t=stack("jaw_t", (3,)), weights=stack("w", (E,)) if E else np.zeros((T, 0)),
                           names=tuple(names), jitter_mm=jitter, face_found=face, conf_median=med, conf_p10=p10,
                           conf_share=share)
+
+
+def confidence_stats(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of ``c (n, L)`` over its finite entries: the median, the 10th percentile (numpy's default
+    linear interpolation) and the share >= :data:`CONFIDENT`; NaN for a row with none. One sort for all
+    rows: a take of 36,000 frames took 4 s frame by frame with ``np.median`` and ``np.percentile``."""
+    c = np.where(np.isfinite(c), c, np.nan)
+    k = np.isfinite(c).sum(1)
+    srt = np.sort(c, axis=1)                 # NaN last
+    rows = np.arange(len(c))
+
+    def quantile(q: float) -> np.ndarray:
+        pos = (k - 1).clip(0) * q
+        lo = np.floor(pos).astype(np.int64)
+        hi = np.minimum(lo + 1, (k - 1).clip(0))
+        a, b = srt[rows, lo], srt[rows, hi]
+        return a + (b - a) * (pos - lo)
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = (c >= CONFIDENT).sum(1) / k
+    none = k == 0
+    out = [quantile(0.5), quantile(0.1), share]
+    for v in out:
+        v[none] = np.nan
+    return out[0], out[1], out[2]
 
 
 def take_series(fits: Iterable[Any], fps: float, names: Sequence[str], errors: dict[int, float | None],
