@@ -25,8 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from capture.detector import Detector, TrackOptions, detect_video  # noqa: E402
 from capture.detector import synthetic as S  # noqa: E402
+from benchmarks.assets import GRID_CLIPS  # noqa: E402
 
-GRID = Path("/work/shared/assets/videos/grid_corpus")
+GRID = GRID_CLIPS     # benchmarks.assets: $CAPTURE_SHARED_ASSETS or ../shared/assets
 
 
 def main() -> None:

@@ -28,11 +28,13 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 from scipy.spatial.transform import Rotation
 
+from benchmarks.assets import ICT_LIGHT_NPZ
+
 FACE_NV = 9409                 # ICT face region: vertices 0..9408
 NARROW_FACE_NV = 6706          # ICT narrow face (no scalp, ears, neck): vertices 0..6705
 N_IDENTITY = 100               # the Light model's identity modes
 CM_TO_MM = 10.0
-DEFAULT_ICT = Path("/work/shared/assets/ict_facekit/derived/ict_facekit_light.npz")
+DEFAULT_ICT = ICT_LIGHT_NPZ    # benchmarks.assets: $CAPTURE_SHARED_ASSETS or ../shared/assets
 JAW_RANGES = {"jawOpen": 0.45, "jawLeft": 0.3, "jawRight": 0.3}
 EXCLUDED = ("mouthClose",)
 

@@ -8,15 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmarks.assets import GRID_CLIPS
 from capture.detector import Detector, LandmarkTrack, TrackOptions, detect_video
 from capture.detector import synthetic as S
 from capture.detector.finder import HaarFinder
 from capture.io.errors import CaptureError
 from capture.io.video import VideoReader, open_video, video_identity
 
-GRID = Path("/work/shared/assets/videos/grid_corpus")
+GRID = GRID_CLIPS     # $CAPTURE_SHARED_ASSETS or ../shared/assets (benchmarks.assets)
 CLIPS = sorted(GRID.glob("*.mpg"))
-needs_grid = pytest.mark.skipif(not CLIPS, reason="GRID clips not present")
+needs_grid = pytest.mark.skipif(not CLIPS, reason=f"GRID clips not at {GRID} (set CAPTURE_SHARED_ASSETS)")
 
 
 @needs_grid
