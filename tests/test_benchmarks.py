@@ -15,7 +15,8 @@ from benchmarks.heldout import DEFAULT_ICT, EXCLUDED, JAW_RANGES
 from benchmarks.takes import accuracy
 from capture.io.machine import machine
 
-needs_ict = pytest.mark.skipif(not DEFAULT_ICT.is_file(), reason=f"ICT FaceKit arrays not at {DEFAULT_ICT} (set CAPTURE_SHARED_ASSETS)")
+needs_ict = pytest.mark.skipif(not DEFAULT_ICT.is_file(),
+                               reason=f"ICT FaceKit arrays not at {DEFAULT_ICT} (set CAPTURE_SHARED_ASSETS)")
 
 
 def _blendshapes(rng, V=300, K=6):

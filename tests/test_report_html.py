@@ -11,7 +11,8 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from capture.export.report_html import confidence_stats, flag_spans, figures, render_html, shoot_html, take_series, worst_frames
+from capture.export.report_html import (confidence_stats, figures, flag_spans, render_html, shoot_html, take_series,
+                                        worst_frames)
 from capture.export.rig import R_FRONT
 
 
