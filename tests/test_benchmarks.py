@@ -101,6 +101,9 @@ def test_bench_fit3d_quick(tmp_path):
     res = main(["--quick", "--out", str(tmp_path)])
     assert set(res["methods"]) == {"AIM (fit3d)", "GBS [0,1]", "GBS unbounded"}
     assert all(np.isfinite(m["face"]["mean_mm"]) for m in res["methods"].values())
+    # the benchmark's claim holds even at the quick run's 10 iterations (0.71 against 1.25 mm): the actor's
+    # per-point coefficients reach held-out shapes that the 19-shape rig cannot
+    assert res["methods"]["AIM (fit3d)"]["face"]["mean_mm"] < 0.8 * res["methods"]["GBS [0,1]"]["face"]["mean_mm"]
     assert (tmp_path / "fit3d_error_heatmap.png").stat().st_size > 0 and (tmp_path / "fit3d.json").is_file()
 
 
@@ -221,6 +224,9 @@ def test_bench_outofspan_quick(tmp_path):
     methods = res["configs"][0]["sequences"][0]["methods"]
     assert {"AIM default", "GBS19 [0,1]", "GBS53 [0,1] (bound)"} <= set(methods)
     assert all(np.isfinite(m["mean_mm"]) and np.isfinite(m["mouth_mm"]) for m in methods.values())
+    # the bound fits the same landmarks with the truth's own 53 shapes, a superset of the baseline's 19: it must
+    # come nearer the truth (1.45 -> 0.72 mm on this quick sequence)
+    assert methods["GBS53 [0,1] (bound)"]["mean_mm"] < methods["GBS19 [0,1]"]["mean_mm"]
     assert (tmp_path / "outofspan_quick.json").is_file()
 
 

