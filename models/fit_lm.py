@@ -143,12 +143,13 @@ class _Problem:
     def model(self, pose: FramePose, c: torch.Tensor):
         """Camera-frame points ``x (J, P, 3)``, their rotated local part ``y = R_g L`` and ``R_b (s0 - pivot)``."""
         q = self.s0 - self.pivot
-        jaw_q = torch.matmul(q, pose.jaw_R.transpose(1, 2))                                # R_b q (J, P, 3)
+        # products over the points' long axis (R @ q^T), as models.rotation.apply_rigid
+        jaw_q = torch.matmul(pose.jaw_R, q.transpose(-1, -2)).transpose(1, 2)             # R_b q (J, P, 3)
         skinned = self.s0 + self.k * (jaw_q + self.pivot + pose.jaw_t[:, None] - self.s0)
         local = skinned + (c @ self.E_flat).reshape(self.J, self.P, 3)
         if self.A is not None:
             local = local + self.A
-        y = torch.bmm(local, pose.head_R.transpose(1, 2))                                 # R_g L
+        y = torch.bmm(pose.head_R, local.transpose(1, 2)).transpose(1, 2)                 # R_g L
         return y + pose.head_t[:, None], y, jaw_q
 
     def energy(self, d: torch.Tensor | None = None) -> float:

@@ -107,3 +107,36 @@ def test_repeated_coefficient_rows_travel_and_are_stored_as_one_row(tmp_path):
     got = load_frame_fits(tmp_path / "mixed.npz", FrameFit)
     for g, m in zip(got, mixed):
         np.testing.assert_array_equal(g.coefficients_landmarks, m.coefficients_landmarks)
+
+
+def test_fields_written_frame_by_frame_read_back_as_stacked(tmp_path, monkeypatch):
+    """Large fields (the meshes) are written row by row instead of stacked first: with every field forced
+    that way, each frame reads back the same as from a chunk written the stacked way (bridged frames with
+    None fields among them)."""
+    import capture.run.store as store
+
+    rng = np.random.default_rng(1)
+    fits = [FrameFit(frame=i, head_R=np.eye(3), head_t=rng.normal(size=3), jaw_R=np.eye(3), jaw_t=np.zeros(3),
+                     code=rng.normal(size=2), coefficients_landmarks=rng.normal(size=(5, 3)),
+                     vertices=rng.normal(size=(40, 3)).astype(np.float32), landmarks_fit=rng.normal(size=(5, 2)),
+                     reprojection_rms_px=float(rng.random()), status="fitted" if i % 3 else "bridged",
+                     coefficients_base=None if i % 3 == 0 else rng.normal(size=3))
+            for i in range(7)]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    save_frame_fits(tmp_path / "a" / "frames_000000.npz", fits)
+    monkeypatch.setattr(store, "STACK_BYTES", 0)
+    save_frame_fits(tmp_path / "b" / "frames_000000.npz", fits)
+    for d in ("a", "b"):
+        (tmp_path / d / DONE_JSON).write_text(json.dumps({"key": {}, "chunks": ["frames_000000.npz"],
+                                                          "frames": list(range(7))}))
+    stacked, rows = list(iter_fits(tmp_path / "a")), list(iter_fits(tmp_path / "b"))
+    assert len(stacked) == len(rows) == 7
+    for a, b in zip(stacked, rows):
+        for name in ("head_t", "code", "coefficients_landmarks", "vertices", "landmarks_fit", "coefficients_base"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert (x is None) == (y is None), name
+            if x is not None:
+                assert np.asarray(x).dtype == np.asarray(y).dtype, name
+                np.testing.assert_array_equal(x, y)
+        assert a.status == b.status and a.reprojection_rms_px == b.reprojection_rms_px

@@ -59,3 +59,24 @@ def test_apply_rigid_matches_scipy_with_batches():
     out = apply_rigid(pts, R, t)
     ref = np.stack([rots[i].apply(pts[i].numpy()) + t[i].numpy() for i in range(5)])
     np.testing.assert_allclose(out.numpy(), ref, atol=1e-12)
+
+
+def test_apply_rigid_broadcasts_points_and_pivot_like_scipy():
+    """One point set under a batch of rotations, and a batch of batches with a pivot: every item as scipy
+    moves it (the product runs over the points' axis, ``R @ points^T``, so its broadcasting is checked here)."""
+    rots = Rotation.random(6, random_state=4)
+    R = torch.tensor(rots.as_matrix())
+    t = torch.randn(6, 3, dtype=torch.float64)
+    pivot = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    shared = torch.randn(9, 3, dtype=torch.float64)
+    out = apply_rigid(shared, R, t, pivot)
+    assert out.shape == (6, 9, 3)
+    for i in range(6):
+        ref = rots[i].apply(shared.numpy() - pivot.numpy()) + pivot.numpy() + t[i].numpy()
+        np.testing.assert_allclose(out[i].numpy(), ref, atol=1e-12)
+    pts = torch.randn(2, 3, 9, 3, dtype=torch.float64)
+    out = apply_rigid(pts, R.reshape(2, 3, 3, 3), t.reshape(2, 3, 3), pivot)
+    for a in range(2):
+        for b in range(3):
+            ref = rots[3 * a + b].apply(pts[a, b].numpy() - pivot.numpy()) + pivot.numpy() + t[3 * a + b].numpy()
+            np.testing.assert_allclose(out[a, b].numpy(), ref, atol=1e-12)

@@ -191,12 +191,14 @@ _PINNED: dict[str, int] = {}
 
 def pin_threads(threads: int) -> None:
     """Pin this worker process's thread pools to ``threads`` (once per process and value): torch's
-    intra-op threads (and one inter-op thread), OpenCV's. The detector's onnxruntime session gets
-    ``threads`` intra-op threads that do not spin (:func:`capture.detector.session.open_session`);
+    intra-op threads (and one inter-op thread), OpenCV's and USD's (:func:`capture.io.threads.
+    limit_native_pools`). The detector's onnxruntime session gets ``threads`` intra-op threads that do
+    not spin (:func:`capture.detector.session.open_session`);
     OpenMP's idle policy is set in the worker's environment (:func:`capture.batch.cluster.worker_env`).
     """
-    import cv2
     import torch
+
+    from capture.io.threads import limit_native_pools
 
     if _PINNED.get("threads") == threads:
         return
@@ -205,7 +207,7 @@ def pin_threads(threads: int) -> None:
             torch.set_num_interop_threads(1)
         _PINNED["interop"] = 1
     torch.set_num_threads(int(threads))
-    cv2.setNumThreads(int(threads))
+    limit_native_pools(threads)
     _PINNED["threads"] = threads
 
 

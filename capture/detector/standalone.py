@@ -39,6 +39,7 @@ def run_detect(cfg: DetectConfig, say=print) -> dict:
     from capture.detector.runtime import Detector
     from capture.detector.summary import summarise
     from capture.io.atomic import write_json
+    from capture.io.threads import limit_native_pools
     from capture.io.video import open_video
     from capture.run.inputs import default_detector, parse_frame_range
 
@@ -49,6 +50,7 @@ def run_detect(cfg: DetectConfig, say=print) -> dict:
         raise CaptureError(f"--threads must be at least 1, got {cfg.threads}")
     det_path = Path(cfg.detector) if cfg.detector is not None else default_detector(video)
     detector = Detector.load(det_path, threads=cfg.threads)
+    limit_native_pools(cfg.threads)
     if detector.spec.kind == "query":
         raise CaptureError(f"detector {detector.name} is a query detector: it needs an actor's template points, "
                            f"so it cannot run alone; use capture run --actor A")

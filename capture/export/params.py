@@ -57,6 +57,7 @@ import numpy as np
 
 from capture.export.base import STATUSES, ExportContext, FrameFitLike, PendingFile, status_code
 from capture.fit.records import is_repeated_rows
+from capture.io.arrays import write_npy_member
 from capture.io.rows import SpilledRows, same_shape
 
 PARAMS_FILE = "params.npz"
@@ -123,7 +124,7 @@ def _savez(fh, arrays: dict, tails: dict | None = None) -> None:
         for key, value in arrays.items():
             with z.open(key + ".npy", "w", force_zip64=True) as member:
                 if not isinstance(value, (SpilledRows, _Coefficients)):
-                    np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+                    write_npy_member(member, np.asanyarray(value))
                     continue
                 tail = tails.get(key)
                 np.lib.format.write_array_header_1_0(member, {

@@ -342,8 +342,8 @@ def _window_outputs(state: dict, settings: FitSettings, fit_actor: ActorAtPoints
     else:
         out["landmarks_fit"] = np.zeros((J, 0, 2))
     if net_zero:   # F_W at its zero start (2D default): the same coefficients at every vertex, all frames at once
-        out["vertices"] = pose_face(out_actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t,
-                                    fit.coeff0[:, None, :]).cpu().numpy().astype(np.float32, copy=False)
+        v = pose_face(out_actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t, fit.coeff0[:, None, :])
+        out["vertices"] = np.ascontiguousarray(v.cpu().numpy(), np.float32)   # frame by frame in memory
         return out
     V = out_actor.points.shape[0]
     verts = np.empty((J, V, 3), np.float32)

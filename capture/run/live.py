@@ -171,6 +171,7 @@ def run_live(cfg: LiveConfig, say: Callable[[str], None] | None = None) -> dict:
     from capture.detector import Detector, embedded_points, read_embedding
     from capture.detector.embedding import embedding_path
     from capture.export import ExportContext, ExportOptions
+    from capture.io.threads import limit_native_pools
     from capture.run.inputs import default_detector, resolve_camera, resolve_fit_settings
 
     window, overlap = cfg.windows()
@@ -188,6 +189,7 @@ def run_live(cfg: LiveConfig, say: Callable[[str], None] | None = None) -> dict:
             raise CaptureError("a camera or stream source needs --detector FILE.onnx")
         det_path = Path(cfg.detector) if cfg.detector is not None else default_detector(Path(cfg.source))
         det = Detector.load(det_path, threads=cfg.threads)
+        limit_native_pools(cfg.threads)
         if det.spec.kind == "query":
             raise CaptureError(f"detector {det.name} is a query detector; capture live takes dense detectors")
         if not embedding_path(actor.path, det.name).is_file():

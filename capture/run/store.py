@@ -27,6 +27,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from capture.fit.records import ROW_SUFFIX, ROWS_SUFFIX, is_repeated_rows, stored_rows
+from capture.io.arrays import write_npz
 from capture.io.atomic import atomic_path, is_temp_name, write_json
 from capture.io.errors import CaptureError
 
@@ -315,6 +316,9 @@ def write_run_json(out: Path, take_id: str, take_label: str, settings: dict, fin
 
 
 # ------------------------------------------------------------------------------------ frame fits
+STACK_BYTES = 1 << 20   # a field of frame fits at least this large is written frame by frame (capture.io.arrays)
+
+
 def save_frame_fits(path: Path, fits: Sequence[Any]) -> Path:
     """Stack the fields of dataclass frame fits into one NPZ (None -> NaN; strings as unicode arrays).
 
@@ -339,10 +343,11 @@ def save_frame_fits(path: Path, fits: Sequence[Any]) -> Path:
         ref = next(a for a in arrs if a is not None)
         if any(a is None for a in arrs):
             arrs = [np.full(ref.shape, np.nan) if a is None else a.astype(np.float64) for a in arrs]
-        arrays[f.name] = np.stack(arrs)
+        big = sum(a.nbytes for a in arrs) >= STACK_BYTES and len({(a.dtype, a.shape) for a in arrs}) == 1
+        arrays[f.name] = arrs if big else np.stack(arrs)     # big: written row by row, never stacked
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
+            write_npz(fh, arrays)       # the frames' rows, not stacked first
     return Path(path)
 
 

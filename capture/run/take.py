@@ -119,8 +119,10 @@ def check_complete(requested: list[int], fitted: list[int]) -> None:
 def run_take(cfg: RunConfig) -> dict:
     """Run the whole take; returns the report (also written to ``OUT/report.json``)."""
     from calib.camera_io import camera_to_dict
+    from capture.io.threads import limit_native_pools
 
     t_start = time.perf_counter()
+    limit_native_pools(cfg.threads)     # before the USD writer loads pxr
     inputs = resolve_inputs(cfg)
     out, info, det = inputs.out, inputs.video_info, inputs.detector
     cam = inputs.camera.camera

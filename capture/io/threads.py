@@ -1,0 +1,36 @@
+"""The native thread pools of a run's own process, set once: OpenCV's and USD's (TBB).
+
+``capture run`` gives every stage its threads (capture.run.stream); the libraries' own pools added
+workers of their own to each call: OpenCV's pool (resizes and warps of the detector's crops, the report's
+face crops) and USD's TBB workers (the USD export) waited for work by spinning, 49,000-70,000
+``sched_yield`` calls in one 1,200-frame run on two cores, beside the stages that set the pace. Limited to
+the run's ``--threads`` there are none (``BENCHMARKS.md``, streaming pipeline, sixteenth round: the whole
+run's time did not move measurably on that machine, where a spinning thread yields at once to a busy one).
+torch's threads are set by the fit's process (:mod:`capture.fit.process`), onnxruntime's by the detector's
+session (:mod:`capture.detector.session`).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+PXR_LIMIT_ENV = "PXR_WORK_THREAD_LIMIT"   # read by USD's Work library when it first runs
+
+
+def limit_native_pools(threads: int) -> None:
+    """OpenCV's worker threads and USD's (``pxr.Work``) concurrency to ``threads`` (>= 1) in this process.
+
+    OpenCV with 1 runs its parallel loops in the calling thread (no pool). USD's limit is set through its
+    environment variable while ``pxr`` is not loaded (so that this does not import it), else directly.
+    """
+    n = max(1, int(threads))
+    import cv2
+
+    cv2.setNumThreads(n)
+    if "pxr" in sys.modules:
+        from pxr import Work
+
+        Work.SetConcurrencyLimit(n)
+    else:
+        os.environ[PXR_LIMIT_ENV] = str(n)
