@@ -10,6 +10,7 @@ from types import SimpleNamespace
 
 import cv2
 import numpy as np
+import pytest
 
 from capture.export.report_html import (confidence_stats, figures, flag_spans, render_html, shoot_html, take_series,
                                         worst_frames)
@@ -175,11 +176,19 @@ def test_batch_report_writes_the_shoot_page(tmp_path):
     assert Path(tmp_path / "batch_report.json").is_file()
 
 
-def test_figures_drawn_in_their_own_process_are_the_same_bytes():
-    """FigureProcess draws report_html.figures in a spawned process (it imports matplotlib while a take
-    runs): the same SVG bytes as drawn here (no time stamp in them), and drawn here when the process is
-    gone."""
+@pytest.mark.parametrize("method", ["fork", "spawn"])
+def test_figures_drawn_in_their_own_process_are_the_same_bytes(method, monkeypatch):
+    """FigureProcess draws report_html.figures in its own process (it imports matplotlib while a take
+    runs), forked (Linux) or a fresh interpreter (elsewhere): the same SVG bytes as drawn here (no time
+    stamp in them), and drawn here when the process is gone."""
+    import multiprocessing
+
+    import capture.export.report_figures as rf
     from capture.export.report_figures import FigureProcess
+
+    if method not in multiprocessing.get_all_start_methods():
+        pytest.skip(f"no {method} on this platform")
+    monkeypatch.setattr(rf, "START_METHOD", method)
 
     fits, dets = make_take()
     s = take_series(iter(fits), 25.0, ("jawOpen", "smile"), {10 + j: 0.1 * j for j in range(12)}, "px", dets)

@@ -2,8 +2,8 @@
 
 Importing matplotlib and pyplot costs 0.5-0.8 s, and drawing the five figures of ``report.html``
 another 0.5-0.7 s; in a run they came after the take, one after the other, beside the worst-frame
-thumbnails. :class:`FigureProcess` spawns one process when the run starts (a fresh interpreter, not a
-fork of the run), which imports matplotlib while the take is decoded, detected and fitted, and draws
+thumbnails. :class:`FigureProcess` starts one process when the run starts (:data:`START_METHOD`), which
+imports matplotlib while the take is decoded, detected and fitted, and draws
 :func:`capture.export.report_html.figures` of the take's series when asked, while the run's process
 draws the thumbnails. The figures are the same bytes as drawn in the run's process (the same function
 on the same series; ``svg.hashsalt`` fixes the SVG ids). If the process is gone or fails, they are drawn
@@ -13,6 +13,15 @@ in the run's process. It starts no thread in the run's process (the fit process 
 from __future__ import annotations
 
 import multiprocessing
+import sys
+
+
+#: Forked where that is safe (Linux: the run has started no thread yet, as for the fit process): the child
+#: has the run's modules already and only imports matplotlib, 0.77 CPU-seconds in all against 0.92-1.04 for a
+#: fresh interpreter on a 1,200-frame run (``BENCHMARKS.md``, streaming pipeline, sixteenth round); elsewhere
+#: a fresh interpreter.
+START_METHOD = "fork" if sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods() \
+    else "spawn"
 
 
 def _serve(conn) -> None:
@@ -58,7 +67,7 @@ class FigureProcess:
     it (always call it)."""
 
     def __init__(self):
-        ctx = multiprocessing.get_context("spawn")
+        ctx = multiprocessing.get_context(START_METHOD)
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_serve, args=(child,), name="capture-report-figures", daemon=True)
         self._proc.start()
