@@ -5,6 +5,7 @@ Each case runs in a fresh interpreter: the pools are process-wide, and USD reads
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -24,7 +25,12 @@ print(json.dumps({"cv2": cv2.getNumThreads(), "usd": Work.GetConcurrencyLimit()}
 
 
 def _pools(case: str) -> dict:
-    r = subprocess.run([sys.executable, "-c", CHECK, case], capture_output=True, text=True, check=True)
+    """The pools in a fresh interpreter whose environment sets neither (a run earlier in this process sets
+    USD's variable, which children inherit)."""
+    from capture.io.threads import PXR_LIMIT_ENV
+
+    env = {k: v for k, v in os.environ.items() if k not in (PXR_LIMIT_ENV, "OPENCV_FOR_THREADS_NUM")}
+    r = subprocess.run([sys.executable, "-c", CHECK, case], capture_output=True, text=True, check=True, env=env)
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
