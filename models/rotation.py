@@ -66,7 +66,7 @@ def apply_rigid(points: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
         points = points - pivot
     # R @ points^T: a product over the points' long axis. As einsum("...ij,...pj->...pi") (points @ R^T, a
     # product with 3 columns) it ran 3-4x slower on the CPU: 7.5 against 1.8 ms for 30 frames of 9,409
-    # points on one core, with the same results bit for bit (BENCHMARKS.md, streaming pipeline, sixteenth round)
+    # points on one core, with the same results up to rounding (BENCHMARKS.md, streaming pipeline, sixteenth round)
     out = torch.matmul(R, points.transpose(-1, -2)).transpose(-1, -2) + t.unsqueeze(-2)
     if pivot is not None:
         out = out + pivot
