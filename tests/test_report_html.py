@@ -346,3 +346,52 @@ def test_thumbnails_read_the_video_where_a_face_crop_is_not_the_thumbnails_box(m
     for i in (3, 5):
         a, b = (cv2.imdecode(np.frombuffer(base64.b64decode(x[i]), np.uint8), cv2.IMREAD_COLOR) for x in (got, ref))
         assert a.shape == b.shape and _psnr(a, b) > 35.0
+
+
+KILLED_RUN = """
+import sys, time
+import capture.export.report_figures as rf
+rf.START_METHOD = sys.argv[1]
+fp = rf.FigureProcess()
+print(fp._proc.pid, flush=True)
+time.sleep(300)
+"""
+
+
+@pytest.mark.parametrize("method", ["fork", "spawn"])
+def test_figures_process_ends_when_the_run_is_killed(method):
+    """kill -9 of the run: its figures' process reads the end of its pipe and leaves, instead of living on
+    (a forked one that kept the run's end of the pipe never did, and held the run's folder lock with it)."""
+    import multiprocessing
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    if method not in multiprocessing.get_all_start_methods():
+        pytest.skip(f"no {method} on this platform")
+    run = subprocess.Popen([sys.executable, "-c", KILLED_RUN, method], stdout=subprocess.PIPE, text=True,
+                           cwd=Path(__file__).resolve().parents[1])
+    try:
+        child = int(run.stdout.readline())
+    finally:
+        run.send_signal(signal.SIGKILL)
+        run.wait(timeout=30)
+
+    def alive(pid: int) -> bool:
+        try:
+            with open(f"/proc/{pid}/stat") as fh:
+                return fh.read().rsplit(")", 1)[1].split()[0] != "Z"    # a zombie has ended
+        except FileNotFoundError:
+            return False
+
+    if not os.path.isdir("/proc"):
+        pytest.skip("no /proc to watch the process with")
+    deadline = time.time() + 60
+    while alive(child) and time.time() < deadline:
+        time.sleep(0.05)
+    ended = not alive(child)
+    if not ended:
+        os.kill(child, signal.SIGKILL)
+    assert ended, "the figures' process outlived the killed run"

@@ -24,10 +24,14 @@ START_METHOD = "fork" if sys.platform.startswith("linux") and "fork" in multipro
     else "spawn"
 
 
-def _serve(conn) -> None:
+def _serve(conn, parent_end=None) -> None:
+    import os
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C is the run's to handle; it closes this process
+    run = os.getppid()
+    if parent_end is not None:     # forked: the run's end of the pipe is the run's alone, or this process would
+        parent_end.close()         # never read the end of it when the run is killed (and keep its folder locked)
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -37,6 +41,11 @@ def _serve(conn) -> None:
 
     while True:
         try:
+            # a run killed with -9 may leave the pipe open in its fit process (forked after this one, with a copy of
+            # the run's end) until that one ends: the parent's going is watched too
+            while not conn.poll(0.5):
+                if os.getppid() != run:
+                    _leave()
             series = conn.recv()
         except (EOFError, OSError):                # the run is done or gone
             series = None
@@ -69,7 +78,8 @@ class FigureProcess:
     def __init__(self):
         ctx = multiprocessing.get_context(START_METHOD)
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(child,), name="capture-report-figures", daemon=True)
+        args = (child, self._conn) if START_METHOD == "fork" else (child,)
+        self._proc = ctx.Process(target=_serve, args=args, name="capture-report-figures", daemon=True)
         self._proc.start()
         child.close()
         self._series, self._sent = None, False
