@@ -37,6 +37,7 @@ import numpy as np
 
 from capture.io.errors import CaptureError
 from capture.export.base import ExportContext, FrameFitLike, PendingFile, check_vertices
+from capture.io.threads import limit_usd_pool
 
 #: OpenCV camera frame (x right, y down, z forward) -> USD (y up, camera looking down -z).
 #: Column-vector form: p_usd = CAMERA_TO_USD @ p_cam. A 180-degree rotation about x.
@@ -62,6 +63,7 @@ def _pxr():
         from pxr import Sdf, Usd, UsdGeom, Vt
     except ImportError:  # pragma: no cover - depends on the environment
         raise CaptureError("the usd export needs Pixar's USD: pip install usd-core") from None
+    limit_usd_pool()        # the run's threads, not a pool of USD's own (capture.io.threads)
     return Sdf, Usd, UsdGeom, Vt
 
 

@@ -12,25 +12,32 @@ session (:mod:`capture.detector.session`).
 
 from __future__ import annotations
 
-import os
 import sys
 
-PXR_LIMIT_ENV = "PXR_WORK_THREAD_LIMIT"   # read by USD's Work library when it first runs
+_LIMIT: dict[str, int] = {}
 
 
 def limit_native_pools(threads: int) -> None:
     """OpenCV's worker threads and USD's (``pxr.Work``) concurrency to ``threads`` (>= 1) in this process.
 
-    OpenCV with 1 runs its parallel loops in the calling thread (no pool). USD's limit is set through its
-    environment variable while ``pxr`` is not loaded (so that this does not import it), else directly.
+    OpenCV with 1 runs its parallel loops in the calling thread (no pool). USD's limit is set now if ``pxr`` is
+    loaded, else when the USD export loads it (:func:`limit_usd_pool`): this does not import pxr.
     """
     n = max(1, int(threads))
     import cv2
 
     cv2.setNumThreads(n)
+    _LIMIT["threads"] = n
     if "pxr" in sys.modules:
+        limit_usd_pool()
+
+
+def limit_usd_pool() -> None:
+    """USD's concurrency to the limit :func:`limit_native_pools` set, if it was called (for the code that loads
+    pxr: :mod:`capture.export.usd`). Through ``pxr.Work``: USD's ``PXR_WORK_THREAD_LIMIT`` would do the same but
+    makes USD print a banner on stderr."""
+    n = _LIMIT.get("threads")
+    if n is not None:
         from pxr import Work
 
         Work.SetConcurrencyLimit(n)
-    else:
-        os.environ[PXR_LIMIT_ENV] = str(n)
