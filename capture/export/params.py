@@ -57,7 +57,7 @@ import numpy as np
 
 from capture.export.base import STATUSES, ExportContext, FrameFitLike, PendingFile, status_code
 from capture.fit.records import is_repeated_rows
-from capture.io.arrays import write_npy_member
+from capture.io.arrays import Blocks, write_npz
 from capture.io.rows import SpilledRows, same_shape
 
 PARAMS_FILE = "params.npz"
@@ -117,21 +117,15 @@ def _savez(fh, arrays: dict, tails: dict | None = None) -> None:
     """``np.savez(fh, **arrays)`` where a value may also be :class:`SpilledRows` or :class:`_Coefficients`
     (written block by block: the same bytes as its stacked array, which ``np.load`` reads back; ``tails``:
     the row shape of such a value whose rows are all None)."""
-    import zipfile
-
     tails = tails or {}
-    with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as z:
-        for key, value in arrays.items():
-            with z.open(key + ".npy", "w", force_zip64=True) as member:
-                if not isinstance(value, (SpilledRows, _Coefficients)):
-                    write_npy_member(member, np.asanyarray(value))
-                    continue
-                tail = tails.get(key)
-                np.lib.format.write_array_header_1_0(member, {
-                    "descr": np.lib.format.dtype_to_descr(value.dtype), "fortran_order": False,
-                    "shape": (len(value),) + tuple(value.row_shape(tail))})
-                for block in value.blocks(tail):
-                    member.write(memoryview(np.ascontiguousarray(block)).cast("B"))
+
+    def member(key, value):
+        if not isinstance(value, (SpilledRows, _Coefficients)):
+            return value
+        tail = tails.get(key)
+        return Blocks(value.dtype, (len(value),) + tuple(value.row_shape(tail)), value.blocks(tail))
+
+    write_npz(fh, {k: member(k, v) for k, v in arrays.items()})
 
 
 def _opt(fit, name):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import zipfile
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -82,15 +83,19 @@ def load_npz(path: str | os.PathLike, what: str, fix: str, max_bytes: int = DEFA
         raise CaptureError(f"{what} {path} is damaged or not written by this program ({reason}); {fix}") from None
 
 
-def write_npy_member(member, value: np.ndarray | list) -> None:
-    """Write one ``.npy`` member of an NPZ (``np.lib.format`` version 1.0) from ``value``: an array, or a list
-    of equally shaped arrays of one dtype written as their stack.
+@dataclass(frozen=True)
+class Blocks:
+    """An array given as consecutive blocks of rows (read one at a time, e.g. from a file they were spilled to):
+    ``dtype``, the whole ``shape``, and an iterable of ``(k, *shape[1:])`` arrays whose ``k`` add up to
+    ``shape[0]``. :func:`write_npz` writes it as that array."""
 
-    The data go to the member from the arrays' own memory, without the copy that ``np.lib.format.write_array``
-    makes of a zip member's data (to ``bytes``) nor a stacked array: a run's fit chunks (64 frames of 9,409
-    vertices, 7 MB) were copied twice, each copy a fresh mapping in the run's process, which maps blocks of
-    1 MB and up (:mod:`capture.io.heap`).
-    """
+    dtype: np.dtype
+    shape: tuple[int, ...]
+    blocks: Iterable[np.ndarray]
+
+
+def _member(member, value: np.ndarray | list | Blocks) -> None:
+    """Write one ``.npy`` member (``np.lib.format`` version 1.0) from the arrays' own memory (see :func:`write_npz`)."""
     if isinstance(value, list):
         rows = [np.asarray(r) for r in value]
         if not rows:
@@ -99,24 +104,30 @@ def write_npy_member(member, value: np.ndarray | list) -> None:
         for r in rows:
             if r.dtype != dtype or r.shape != tail:
                 raise ValueError(f"rows of different shapes or types: {r.dtype} {r.shape} after {dtype} {tail}")
-        header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
-                  "shape": (len(rows),) + tuple(tail)}
-    else:
-        rows = [np.asarray(value)]
-        header = np.lib.format.header_data_from_array_1_0(rows[0])
-        header["fortran_order"] = False
-    if rows[0].dtype.hasobject:
+        value = Blocks(dtype, (len(rows),) + tuple(tail), (r[None] for r in rows))
+    elif not isinstance(value, Blocks):
+        a = np.asanyarray(value)
+        value = Blocks(a.dtype, a.shape, [a])
+    dtype = np.dtype(value.dtype)
+    if dtype.hasobject:
         raise ValueError("object arrays are not written")
-    np.lib.format.write_array_header_1_0(member, header)
-    for r in rows:
-        if r.size:
-            member.write(memoryview(np.ascontiguousarray(r).reshape(-1)).cast("B"))
+    np.lib.format.write_array_header_1_0(member, {"descr": np.lib.format.dtype_to_descr(dtype),
+                                                 "fortran_order": False, "shape": tuple(value.shape)})
+    for block in value.blocks:
+        if block.size:
+            member.write(memoryview(np.ascontiguousarray(block).reshape(-1)).cast("B"))
 
 
 def write_npz(fh, arrays: dict) -> None:
     """``np.savez(fh, **arrays)`` (stored, readable by ``np.load`` and :func:`load_npz`), where a value may
-    also be a list of equally shaped arrays, written as their stack (:func:`write_npy_member`)."""
+    also be a list of equally shaped arrays, written as their stack, or :class:`Blocks`.
+
+    The data go to the archive from the arrays' own memory, without the copy that ``np.lib.format.write_array``
+    makes of a zip member's data (to ``bytes``) nor a stacked array: a run's fit chunks (64 frames of 9,409
+    vertices, 7 MB) were copied twice, each copy a fresh mapping in the run's process, which maps blocks of
+    1 MB and up (:mod:`capture.io.heap`).
+    """
     with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as z:
         for key, value in arrays.items():
             with z.open(key + ".npy", "w", force_zip64=True) as member:
-                write_npy_member(member, value if isinstance(value, list) else np.asanyarray(value))
+                _member(member, value)
