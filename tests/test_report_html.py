@@ -371,6 +371,8 @@ def test_figures_process_ends_when_the_run_is_killed(method):
 
     if method not in multiprocessing.get_all_start_methods():
         pytest.skip(f"no {method} on this platform")
+    if not os.path.isdir("/proc"):
+        pytest.skip("no /proc to watch the process with")
     run = subprocess.Popen([sys.executable, "-c", KILLED_RUN, method], stdout=subprocess.PIPE, text=True,
                            cwd=Path(__file__).resolve().parents[1])
     try:
@@ -386,8 +388,6 @@ def test_figures_process_ends_when_the_run_is_killed(method):
         except FileNotFoundError:
             return False
 
-    if not os.path.isdir("/proc"):
-        pytest.skip("no /proc to watch the process with")
     deadline = time.time() + 60
     while alive(child) and time.time() < deadline:
         time.sleep(0.05)
