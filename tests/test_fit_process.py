@@ -3,6 +3,7 @@ bit for bit; its errors reach the parent with their type; a stopped or abandoned
 
 from __future__ import annotations
 
+import sys
 import threading
 
 import numpy as np
@@ -187,6 +188,40 @@ def test_a_failing_feed_stops_the_fit_process(take):
     worker.close(timeout=30)
     assert errors and not worker._proc.is_alive()
     assert got == sorted(got) and len(got) < N_FRAMES
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="niceness is per thread on Linux only")
+@pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
+def test_a_nice_fit_yields_the_cpu_in_every_thread_of_its_own_and_only_there(take, in_process):
+    """``nice``: every thread of the fit (its process's, or the fit thread and the thread reading its rows)
+    runs at the caller's niceness + ``nice``, read back from the kernel by thread id; the caller's threads
+    keep theirs; the fits are the same."""
+    import os
+
+    from capture.fit.process import FitWorker
+    from capture.fit.take import WindowedFit
+    from capture.io.priority import BACKGROUND_NICE
+
+    mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    if mine + BACKGROUND_NICE > 19:
+        pytest.skip(f"the tests run at niceness {mine}: no room left to lower a thread by {BACKGROUND_NICE}")
+    actor, tp, cam, rows, _ = take
+    how = WindowedFit("default", window=4, overlap=1)
+    plain = _run(FitWorker(actor, tp, cam, how, in_process=in_process), rows)
+    worker = FitWorker(actor, tp, cam, how, in_process=in_process, nice=BACKGROUND_NICE)
+    worker.wait_ready()                 # its reading thread has started
+    if in_process:
+        tids = [int(t) for t in os.listdir(f"/proc/{worker._proc.pid}/task")]
+    else:
+        tids = [t.native_id for t in threading.enumerate() if t.name in ("capture-fit", "capture-fit-rows")]
+    assert len(tids) >= 2
+    assert {os.getpriority(os.PRIO_PROCESS, t) for t in tids} == {mine + BACKGROUND_NICE}
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine
+    assert os.getpriority(os.PRIO_PROCESS, os.getpid()) == mine
+    got = _run(worker, rows)
+    assert len(got) == len(plain) == N_FRAMES
+    for (a, _), (b, _) in zip(got, plain):
+        np.testing.assert_array_equal(a.vertices, b.vertices)
 
 
 def test_the_fit_process_ends_when_its_parent_is_gone(take):

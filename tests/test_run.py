@@ -343,6 +343,48 @@ def test_the_stream_hands_the_report_its_worst_frames(take, tmp_path, monkeypatc
     assert html.count("data:image/png;base64") >= len(seen["frames"])
 
 
+def test_the_report_figures_are_drawn_while_the_exporters_finish_their_files(take, tmp_path, monkeypatch):
+    """The stream hands the report's series to the figure process once every fit went to the exporters and
+    before they finish their files (USD's last block, the NPZ archives), once; and that series is the one the
+    report builds after the take from the fit folder, the rows' errors and the track's detections (every
+    field equal: the same errors and confidence statistics, summarised frame by frame as they came)."""
+    import dataclasses
+
+    import capture.export.report_figures as rf
+    import capture.export.usd as usd
+    from capture.actor.package import load_actor
+    from capture.detector import LandmarkTrack
+    from capture.export.report_html import take_series
+    from capture.run.stages import LANDMARKS, iter_fits
+    from capture.run.take import Detection
+
+    root, actor, take_dir = take
+    events = []
+    submit, close = rf.FigureProcess.submit, usd.UsdTakeWriter.close
+    monkeypatch.setattr(rf.FigureProcess, "submit", lambda self, s: (events.append(("submit", s)), submit(self, s))[1])
+    monkeypatch.setattr(usd.UsdTakeWriter, "close", lambda self: (events.append(("close", None)), close(self))[1])
+    out = tmp_path / "out"
+    assert main(run_args(take_dir, actor, out, "--formats", "npz,usd")) == 0
+    assert [e for e, _ in events] == ["submit", "close"]
+    got = events[0][1]
+    report = json.loads((out / "report.json").read_text())
+    errors = {r["frame"]: r["reprojection_rms_px"] for r in report["per_frame"]}
+    assert sum(e is not None for e in errors.values()) >= N_FRAMES - 1
+    track = LandmarkTrack.load_npz(out / LANDMARKS)
+    dets = {int(i): Detection(track.points[j], None if track.confidence is None else track.confidence[j],
+                              bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
+    fit_dir = Path(next(s for s in report["stages"] if s["stage"] == "fit")["fit_dir"])
+    ref = take_series(iter_fits(fit_dir), report["video"]["fps"], load_actor(str(actor)).face_rig().names, errors,
+                      "px", dets)
+    assert np.isfinite(ref.conf_median).sum() >= N_FRAMES - 1
+    for f in dataclasses.fields(ref):
+        a, b = getattr(got, f.name), getattr(ref, f.name)
+        if isinstance(b, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=f.name)
+        else:
+            assert a == b, f.name
+
+
 def test_a_segment_detected_piece_by_piece_gives_the_same_landmarks(take, full_run, tmp_path, monkeypatch):
     """Frames too large for two segments in the stream's decode budget go through a segment a few frames at a
     time (capture.run.stream.DECODE_PIECE_BYTES), the detector's track carried from piece to piece: the same

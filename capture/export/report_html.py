@@ -70,15 +70,18 @@ class SeriesCollector:
     """Builds a :class:`TakeSeries` from frame fits given one at a time (``add``), then ``series(...)``:
     per frame a few numbers, and two meshes held for the jitter. ``capture run``'s stream feeds it the fits
     as they are exported, so the report need not read the fit back (:func:`take_series` is the same on an
-    iterable)."""
+    iterable). Given with each fit (``add(f, detection)``), a frame's detection is summarised at once (face
+    found, :func:`confidence_stats` of its row: the same numbers as from all rows at the end), and
+    ``series`` then needs no ``detections``: the stream draws the figures before the take's track exists."""
 
     def __init__(self, n_expressions: int):
         self.E = int(n_expressions)
         self.rows: dict[str, list] = {k: [] for k in ("frame", "status", "head_R", "head_t", "jaw_R", "jaw_t", "w",
                                                       "acc")}
         self.prev: list[np.ndarray | None] = [None, None]
+        self.seen: dict[int, tuple] = {}     # frame -> (face found, confidence median, p10, share)
 
-    def add(self, f) -> None:
+    def add(self, f, detection=None) -> None:
         from capture.export.base import to_head_frame
         from capture.export.rig import frame_base_weights
 
@@ -98,6 +101,12 @@ class SeriesCollector:
             d = cur - 2 * b + a
             rows["acc"].append(float(np.sqrt(np.einsum("ij,ij->", d, d, dtype=np.float64) / len(d))))
         self.prev = [b, cur]
+        if detection is not None:
+            c = getattr(detection, "confidence", None)
+            stats = (np.nan,) * 3
+            if c is not None and detection.face_found:
+                stats = tuple(float(v[0]) for v in confidence_stats(np.asarray(c, np.float64).reshape(1, -1)))
+            self.seen[int(f.frame)] = (bool(detection.face_found),) + stats
 
     def series(self, fps: float, names: Sequence[str], errors: dict[int, float | None], error_unit: str,
                detections: dict[int, Any] | None = None) -> TakeSeries:
@@ -116,6 +125,9 @@ class SeriesCollector:
         med, p10, share = (np.full(T, np.nan) for _ in range(3))
         rows_of: dict[int, list] = {}          # the frames' confidences, by landmark count
         for j, i in enumerate(frame):
+            if detections is None and int(i) in self.seen:     # summarised as it came (add)
+                face[j], med[j], p10[j], share[j] = self.seen[int(i)]
+                continue
             d = None if detections is None else detections.get(int(i))
             if d is None:
                 continue

@@ -63,8 +63,12 @@ class _Aborted(Exception):
 
 
 def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_points, camera, how, causal, threads,
-                in_thread) -> None:
+                in_thread, nice=0) -> None:
     """The fit, reading rows from ``rows_conn`` and sending fits to ``out_conn``."""
+    if nice:                           # before its reading thread starts, which inherits it (capture.io.priority)
+        from capture.io.priority import background_thread
+
+        background_thread(nice)
     if not in_thread:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -174,6 +178,10 @@ class FitWorker:
 
     ``rows_read`` is how many rows the fit had read when it gave ``ff`` (the live lag). After the take,
     :attr:`timings` holds the fit's timings (``query_s``, ``pnp_s``, ``solve_s``, ``busy_s`` ...).
+
+    ``nice``: niceness added to the fit's threads (Linux; :func:`capture.io.priority.background_thread`):
+    ``capture run`` gives the CPU to decoding and detection first, and the fit fills what they leave from
+    its queue of rows; ``capture live`` keeps 0 (its lag).
     """
 
     @staticmethod
@@ -185,7 +193,7 @@ class FitWorker:
         return bool(in_process)
 
     def __init__(self, actor, template_points, camera, how, causal: bool = False, threads: int = 1,
-                 in_process: bool | None = None):
+                 in_process: bool | None = None, nice: int = 0):
         from capture.fit.init import PnPSettings
 
         self.in_process = self.forks(in_process)
@@ -207,7 +215,7 @@ class FitWorker:
         self.rows_read = 0      # as the fit last said (with a fit, or when it waits for rows)
         self._progress = threading.Condition()
         args = (self._rows_child, self._out_child, self._ready_child, (self._rows, self._out, self._ready), actor,
-                template_points, camera, how, causal, threads, not self.in_process)
+                template_points, camera, how, causal, threads, not self.in_process, nice)
         if self.in_process:
             self._proc = ctx.Process(target=_child_main, args=args, name="capture-fit", daemon=True)
             self._proc.start()

@@ -1,11 +1,15 @@
-"""Scheduling priority of a pipeline's threads: the stages that run ahead yield the CPU to the one that
-sets the pace.
+"""Scheduling priority of a pipeline's threads: the stage that can wait yields the CPU to the ones that set
+the pace.
 
-In ``capture run`` decoding and detection run far ahead of the fit (its rows wait in the fit process's
-inbox; ``benchmarks/bench_pipeline.py``), yet on two cores they compete with the fit process for the CPU,
-most of all while it imports torch and builds the actor's networks, before its first window. Their
-threads take a higher niceness (:data:`BACKGROUND_NICE`), so the fit gets the CPU first when both want
-it, and they still have whatever it leaves. Linux only: there niceness is per thread; elsewhere
+In ``capture run`` decoding and detection are the take's longest chain of work, and the fit (in a process
+of its own, :mod:`capture.fit.process`) is fed by them: on two cores they compete with it for the CPU,
+together with the export. The fit's threads take a higher niceness (:data:`BACKGROUND_NICE`), so that
+decoding and detection get the CPU first when all want it; the fit solves its windows from its queue of
+rows (at most :data:`capture.run.stream.FIT_BACKLOG_FRAMES`) with what they leave, and so has work when
+they wait for each other, instead of idling there with its queue empty. On a 1,200-frame 720p take this
+made a run 7 % shorter than the reverse (decoding and detection niced, which paid while the fit was 2x
+slower; ``BENCHMARKS.md``, seventeenth round). ``capture live`` does not change priorities (its lag).
+Linux only: there niceness is per thread (and inherited by the threads that a thread starts); elsewhere
 ``setpriority`` would name a process, so nothing is changed.
 """
 
@@ -21,7 +25,8 @@ BACKGROUND_NICE = 5
 
 
 def background_thread(nice: int = BACKGROUND_NICE) -> bool:
-    """Lower the calling thread's priority by ``nice`` (Linux); True when done."""
+    """Lower the calling thread's priority by ``nice`` (Linux); True when done. Threads that it starts
+    afterwards inherit its niceness."""
     if not sys.platform.startswith("linux") or nice <= 0:
         return False
     tid = threading.get_native_id()

@@ -37,7 +37,8 @@ def versions() -> dict:
     return out
 
 
-def _num(v) -> float | None:
+def finite_or_none(v) -> float | None:
+    """``v`` as a float where it is a finite number, else None (a frame's error in the report's rows)."""
     try:
         v = float(v)
     except (TypeError, ValueError):
@@ -59,7 +60,7 @@ def frame_table(fits: Sequence[Any], error_key: str, errors: Sequence[float | No
         i = int(f.frame)
         status = str(getattr(f, "status", "fitted"))
         reason = skip_reasons.get(i)
-        rows.append({"frame": i, "status": status, error_key: _num(e), "face_found": i not in skip_reasons})
+        rows.append({"frame": i, "status": status, error_key: finite_or_none(e), "face_found": i not in skip_reasons})
         if reason is not None or status == "skipped":
             entry = {"frame": i, "reason": reason or "not fitted"}
             if status == "bridged":

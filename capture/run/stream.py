@@ -5,11 +5,12 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
 
     decode thread   VideoReader: the frames of the detection segments not in the cache     -> (segment group, frames)
     detect thread   cached segments read, the others detected (Detector.run_lanes)         -> FrameLandmarks per frame
-                    (these two run ahead of the fit and yield it the CPU: capture.io.priority)
+                    (these two set the pace: the fit yields them the CPU, capture.io.priority)
     feed thread     the landmarks checked (capture.run.checks), their head pose by PnP
                     (capture.fit.init.PnPChain), sent to the fit process
     fit process     capture.fit.stream.fit_take_stream: each window solved as soon as      -> FrameFit per frame
-                    its frames (and the initial poses they depend on) are there
+                    its frames (and the initial poses they depend on) are there; it yields the CPU
+                    to decoding and detection and solves from its queue of rows what they leave
                     (capture.fit.process: forked, so it has the loaded actor and a core of its own;
                     a thread where fork is not available or with ``RunConfig.side_processes`` off)
     fit thread      receives the fits, writes the fit's chunks
@@ -60,9 +61,10 @@ import numpy as np
 
 from capture.io.atomic import write_json
 from capture.io.heap import FRAMES_OFF_HEAP, set_malloc_thresholds
-from capture.io.priority import background_thread
+from capture.io.priority import BACKGROUND_NICE
 from capture.io.errors import CaptureError
 from capture.run.progress import StageProgress
+from capture.run.report import finite_or_none
 from capture.run.store import array_digest, digest, read_json, save_frame_fits
 
 QUEUE_FRAMES = 64              # fits waiting for the export
@@ -274,11 +276,16 @@ class StreamResult:
 
 
 def stream_take(inputs, out: Path, export_context, formats, export_key: Callable[[Any], dict],
-                detection_factory: Callable[[Any], Any], progress: bool = True) -> StreamResult:
+                detection_factory: Callable[[Any], Any], progress: bool = True,
+                on_exported: Callable[[Any, dict], None] | None = None) -> StreamResult:
     """Run detect, fit and export of a take together (see the module docstring).
 
     ``export_key(track)`` gives the export's key once the take's landmarks are known;
     ``detection_factory(frame_landmarks)`` gives what the exporters read beside a fit.
+    ``on_exported(series, errors)`` is called once every fit was handed to the exporters, before they
+    finish their files: the report's :class:`capture.export.report_html.SeriesCollector` (with the frames'
+    detections) and each frame's reprojection error (``{frame: px or None}``, the report's
+    ``reprojection_rms_px``), so that the report's figures are drawn while the files are written.
     Returns the track, the finished fit folder and the stage log (detect, fit, export).
     """
     from capture.detector.pipeline import TrackBuilder, _segment_path, _write_segment, stack_frames
@@ -337,7 +344,6 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                         face_crops[int(r.frame_index)] = crop
 
     def decode():
-        background_thread()          # it runs ahead of the fit, which sets the pace (capture.io.priority)
         with VideoReader(cfg.video) as reader:
             for group in plan.groups:
                 idx = [i for s in group for i in range(s, s + plan.seg_len[s])]
@@ -355,7 +361,6 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         decoded.put(_END)
 
     def detect():
-        background_thread()
         groups = iter(decoded)
         done: dict[int, list] = {}
         for s in plan.starts:
@@ -465,6 +470,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         fits.put(_END)
 
     worst = WorstFrameImages()
+    errors: dict[int, float | None] = {}
 
     # export, in this thread. The writers are opened (pxr, av imported) before the other stages start:
     # a C extension loading in one thread while another runs torch or FFmpeg can deadlock.
@@ -481,7 +487,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     early = None if FitWorker.forks(in_process) else open_exporters(formats, out, ctx)
     try:
         worker = FitWorker(inputs.actor, inputs.landmark_points, inputs.camera.camera, how, threads=cfg.threads,
-                           in_process=in_process)
+                           in_process=in_process, nice=BACKGROUND_NICE)   # detection sets the pace (capture.io.priority)
     except BaseException:
         if early is not None:
             early.abort()
@@ -504,14 +510,17 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                             break
                     detection = detection_factory(_take_landmarks(unexported, int(ff.frame)))
                     writers.write(ff, image, detection)
-                    series.add(ff)         # the report's series, while the fit works on (not read back)
+                    series.add(ff, detection)    # the report's series, while the fit works on (not read back)
                     face = image if image is not None else face_crops.pop(int(ff.frame), None)
                     error = confident_rms(ff, detection)
+                    errors[int(ff.frame)] = finite_or_none(error)
                     if face is not None and worst.wants(int(ff.frame), error):
                         worst.keep(int(ff.frame), error, face)
                     clocks["export"].busy += time.perf_counter() - t0
                     bar.advance(1)
                 pipe_line.check()
+                if on_exported is not None:
+                    on_exported(series, errors)
                 t_close = time.perf_counter()     # the writers finish (USD's last block, NPZ) as the block ends
             finally:
                 if reader is not None:

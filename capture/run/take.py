@@ -174,6 +174,12 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
 
     collector = None           # the report's series, when the stream collected it
     worst_images = None        # and the images of its worst frames
+    early: dict = {}           # and its figures, submitted while the stream's files were written
+
+    def on_exported(series, errors) -> None:
+        if figure_process is not None:
+            early.update(errors=errors, series=series.series(info.fps, inputs.actor.face_rig().names, errors, "px"))
+            figure_process.submit(early["series"])
     with sigterm_as_interrupt():
         try:
             streamed = None if cfg.segments else _stream_unless_fitted(inputs, out, log)
@@ -182,7 +188,8 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
                 from capture.run.stream import stream_take
 
                 res = stream_take(inputs, out, replace(ctx, frame_count=streamed), cfg.formats, export_key,
-                                  lambda r: Detection(r.points, r.confidence, bool(r.face_found)), cfg.progress)
+                                  lambda r: Detection(r.points, r.confidence, bool(r.face_found)), cfg.progress,
+                                  on_exported=on_exported)
                 log[:] = res.log
                 track, fit_dir, collector, worst_images = res.track, res.fit_dir, res.series, res.thumbnail_images
                 check_reasons = check_detections(track, det.name)
@@ -244,9 +251,13 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
         "skipped_frames": skipped, "per_frame": rows, "notes": inputs.notes})
     implausible = check_head_depths(fit_dir, rows)
     finish_report(report, rows, "reprojection_rms_px", out)
+    # the figures drawn from the stream's series stand if its errors are the rows' (the same rule on the same
+    # numbers); otherwise html_report submits the rows' series, and the figures drawn first are dropped
+    submitted = early.get("series") if early.get("errors") == {r["frame"]: r["reprojection_rms_px"] for r in rows} \
+        else None
     html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
                 video=Path(cfg.video), camera=cam, image_size=(info.width, info.height), figure_process=figure_process,
-                collector=collector, images=worst_images)
+                collector=collector, images=worst_images, submitted=submitted)
     check_complete(requested, frames)
     if implausible:
         raise CaptureError(implausible)
@@ -305,13 +316,14 @@ def rig_and_features(actor, formats) -> dict:
 def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict], error_key: str, unit: str,
                 fps: float, detections: dict | None = None, video: Path | None = None, camera=None,
                 image_size: tuple[int, int] | None = None, figure_process=None, collector=None,
-                images: dict | None = None) -> Path:
+                images: dict | None = None, submitted=None) -> Path:
     """``OUT/report.html`` (:mod:`capture.export.report_html`): the take's plots and its worst frames.
 
     ``figure_process`` (:class:`capture.export.report_figures.FigureProcess`) draws the plots while the
     thumbnails are drawn here (None: both here); ``collector`` (:class:`capture.export.report_html.
     SeriesCollector`) has seen the take's fits already (None: they are read from ``fit_dir``); ``images``
-    holds the worst frames' images that the stream kept (the others are read from ``video``)."""
+    holds the worst frames' images that the stream kept (the others are read from ``video``); ``submitted``
+    is the take's series, already given to ``figure_process`` (the stream's, ``stream_take(on_exported=)``)."""
     from capture.export.features import face_features
     from capture.export.overlay_draw import FrameRenderer, Topology
     from capture.export.report_html import take_series, thumbnails, worst_frames, write_report_html
@@ -319,10 +331,13 @@ def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict],
 
     rig = actor.face_rig()
     errors = {int(r["frame"]): r.get(error_key) for r in rows}
-    series = (collector.series(fps, rig.names, errors, unit, detections) if collector is not None else
-              take_series(iter_fits(fit_dir), fps, rig.names, errors, unit, detections))
-    if figure_process is not None:
-        figure_process.submit(series)
+    if submitted is not None and figure_process is not None:
+        series = submitted
+    else:
+        series = (collector.series(fps, rig.names, errors, unit, detections) if collector is not None else
+                  take_series(iter_fits(fit_dir), fps, rig.names, errors, unit, detections))
+        if figure_process is not None:
+            figure_process.submit(series)
     thumbs = []
     if video is not None and camera is not None and image_size is not None:
         worst = worst_frames(series)
