@@ -343,37 +343,71 @@ def test_the_stream_hands_the_report_its_worst_frames(take, tmp_path, monkeypatc
     assert html.count("data:image/png;base64") >= len(seen["frames"])
 
 
-def test_the_report_figures_are_drawn_while_the_exporters_finish_their_files(take, tmp_path, monkeypatch):
-    """The stream hands the report's series to the figure process once every fit went to the exporters and
-    before they finish their files (USD's last block, the NPZ archives), once; and that series is the one the
-    report builds after the take from the fit folder, the rows' errors and the track's detections (every
-    field equal: the same errors and confidence statistics, summarised frame by frame as they came)."""
+def test_the_stream_gives_the_report_its_series_and_rows_as_it_exports(take, tmp_path, monkeypatch):
+    """The report reads nothing back from the fit after a streamed take. The stream hands the report's series to
+    the figure process once every fit went to the exporters and before they finish their files (USD's last
+    block, the NPZ archives), once; that series is the one the report builds after the take from the fit
+    folder, the rows' errors and the track's detections (every field equal: the same errors and confidence
+    statistics, summarised frame by frame as they came). The report's rows (errors, head depths) are those
+    that summarise_fit and check_head_depths read from the fit folder, and the worst frames' fits that the
+    thumbnails are drawn with those that fits_at reads."""
     import dataclasses
 
     import capture.export.report_figures as rf
     import capture.export.usd as usd
+    import capture.run.stages as stages
+    import capture.run.take as take_module
     from capture.actor.package import load_actor
     from capture.detector import LandmarkTrack
     from capture.export.report_html import take_series
-    from capture.run.stages import LANDMARKS, iter_fits
-    from capture.run.take import Detection
+    from capture.run.checks import check_head_depths
+    from capture.run.report import frame_table
+    import capture.export.report_html as rh
+    from capture.run.stages import LANDMARKS, fits_at, iter_fits
+    from capture.run.take import THUMBNAIL_FIELDS, Detection, skip_reasons, summarise_fit
 
     root, actor, take_dir = take
     events = []
-    submit, close = rf.FigureProcess.submit, usd.UsdTakeWriter.close
+    submit, close, read_back = rf.FigureProcess.submit, usd.UsdTakeWriter.close, stages.iter_fits
     monkeypatch.setattr(rf.FigureProcess, "submit", lambda self, s: (events.append(("submit", s)), submit(self, s))[1])
     monkeypatch.setattr(usd.UsdTakeWriter, "close", lambda self: (events.append(("close", None)), close(self))[1])
+    spy = (lambda *a, **k: (events.append(("read", None)), read_back(*a, **k))[1])
+    for module in (stages, take_module):
+        monkeypatch.setattr(module, "iter_fits", spy)
+    monkeypatch.setattr(stages, "fits_at", lambda *a, **k: events.append(("read", None)))
+    thumbnails = rh.thumbnails
+    monkeypatch.setattr(rh, "thumbnails", lambda video, frames, fits, *a, **k: (
+        events.append(("thumbnails", (list(frames), fits))), thumbnails(video, frames, fits, *a, **k))[1])
     out = tmp_path / "out"
     assert main(run_args(take_dir, actor, out, "--formats", "npz,usd")) == 0
-    assert [e for e, _ in events] == ["submit", "close"]
+    for module in (stages, take_module):
+        monkeypatch.setattr(module, "iter_fits", read_back)
+    assert [e for e, _ in events] == ["submit", "close", "thumbnails"]
     got = events[0][1]
     report = json.loads((out / "report.json").read_text())
     errors = {r["frame"]: r["reprojection_rms_px"] for r in report["per_frame"]}
     assert sum(e is not None for e in errors.values()) >= N_FRAMES - 1
     track = LandmarkTrack.load_npz(out / LANDMARKS)
+    fit_dir = Path(next(s for s in report["stages"] if s["stage"] == "fit")["fit_dir"])
+    fits = summarise_fit(fit_dir, track)
+    rows, _ = frame_table(fits, "reprojection_rms_px", [f.error for f in fits], skip_reasons(track, "d"))
+    assert check_head_depths(fit_dir, rows) is None
+    for r, f in zip(rows, fits):
+        r["reprojection_rms_all_px"] = f.error_all
+    keys = ("frame", "status", "reprojection_rms_px", "reprojection_rms_all_px", "head_depth_mm")
+    assert [{k: r.get(k) for k in keys} for r in report["per_frame"]] == [{k: r.get(k) for k in keys} for r in rows]
+    assert sum("head_depth_mm" in r for r in rows) >= N_FRAMES - 1
+    worst, kept = events[2][1]
+    assert len(worst) == rh.WORST_FRAMES
+    for i, f in fits_at(fit_dir, worst, THUMBNAIL_FIELDS).items():
+        for k in THUMBNAIL_FIELDS:
+            a, b = getattr(kept[i], k, None), getattr(f, k)
+            if a is None or isinstance(a, str):
+                assert a == b, (i, k)
+            else:
+                np.testing.assert_array_equal(a, b, err_msg=f"frame {i} {k}")
     dets = {int(i): Detection(track.points[j], None if track.confidence is None else track.confidence[j],
                               bool(track.face_found[j])) for j, i in enumerate(track.frame_index)}
-    fit_dir = Path(next(s for s in report["stages"] if s["stage"] == "fit")["fit_dir"])
     ref = take_series(iter_fits(fit_dir), report["video"]["fps"], load_actor(str(actor)).face_rig().names, errors,
                       "px", dets)
     assert np.isfinite(ref.conf_median).sum() >= N_FRAMES - 1

@@ -262,7 +262,8 @@ class WorstFrameImages:
     are among the ``k`` worst of every prefix that contains them; ties go to the earlier frame, as there).
     ``capture run`` fills it as it exports, with the frames the overlay's export decoded or else the
     :class:`FaceCrop` that detection cut from the frames it had, so the report need not decode the video
-    again (:func:`thumbnails`' ``images``)."""
+    again (:func:`thumbnails`' ``images``); and, in another, those frames' fits, so that it need not read
+    them back."""
 
     def __init__(self, k: int = WORST_FRAMES):
         self.k = int(k)

@@ -112,9 +112,9 @@ def fit3d_take(cfg: Fit3dConfig) -> dict:
             except KeyboardInterrupt:
                 raise Interrupted(f"interrupted during {stage}; finished work is kept in {out}: run the same "
                                   f"command to resume") from None
-        from capture.run.take import FrameSummary, _finite
+        from capture.run.report import FrameSummary, finite_or_none
 
-        fits = [FrameSummary(int(f.frame), str(f.status), _finite(getattr(f, "error3d_mm", None)))
+        fits = [FrameSummary(int(f.frame), str(f.status), finite_or_none(getattr(f, "error3d_mm", None)))
                 for f in iter_fits(fdir)]
         errors = [f.error for f in fits]
         rows, skipped = frame_table(fits, "error3d_mm", errors, {})

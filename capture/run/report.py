@@ -8,6 +8,7 @@ the resolved settings and the camera's provenance (including the default-camera 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 import platform
 import sys
 from pathlib import Path
@@ -35,6 +36,16 @@ def versions() -> dict:
         except (ImportError, PackageNotFoundError, AttributeError):  # pragma: no cover - optional
             out[key] = None
     return out
+
+
+@dataclass
+class FrameSummary:
+    """What the report keeps of one frame's fit (the meshes stay on disk)."""
+
+    frame: int
+    status: str
+    error: float | None        # confident-landmark reprojection RMS (px) or 3D error (mm)
+    error_all: float | None = None
 
 
 def finite_or_none(v) -> float | None:

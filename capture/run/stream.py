@@ -64,7 +64,7 @@ from capture.io.heap import FRAMES_OFF_HEAP, set_malloc_thresholds
 from capture.io.priority import BACKGROUND_NICE
 from capture.io.errors import CaptureError
 from capture.run.progress import StageProgress
-from capture.run.report import finite_or_none
+from capture.run.report import FrameSummary, finite_or_none
 from capture.run.store import array_digest, digest, read_json, save_frame_fits
 
 QUEUE_FRAMES = 64              # fits waiting for the export
@@ -273,6 +273,9 @@ class StreamResult:
     log: list
     series: Any = None         # capture.export.report_html.SeriesCollector of the exported fits
     thumbnail_images: dict = field(default_factory=dict)   # frame -> image of the worst frames (report.html)
+    frames: list = field(default_factory=list)     # capture.run.report.FrameSummary per exported fit, in order
+    worst_fits: dict = field(default_factory=dict)   # frame -> FrameFit of the worst frames (report.html)
+    head_depths: dict = field(default_factory=dict)  # frame -> head_t z (mm) of the fitted frames
 
 
 def stream_take(inputs, out: Path, export_context, formats, export_key: Callable[[Any], dict],
@@ -469,8 +472,10 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                                **{k: v for k, v in timings.items() if isinstance(v, (int, float))}}
         fits.put(_END)
 
-    worst = WorstFrameImages()
+    worst, worst_fits = WorstFrameImages(), WorstFrameImages()
     errors: dict[int, float | None] = {}
+    summaries: list[FrameSummary] = []
+    depths: dict[int, float] = {}
 
     # export, in this thread. The writers are opened (pxr, av imported) before the other stages start:
     # a C extension loading in one thread while another runs torch or FFmpeg can deadlock.
@@ -514,8 +519,17 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                     face = image if image is not None else face_crops.pop(int(ff.frame), None)
                     error = confident_rms(ff, detection)
                     errors[int(ff.frame)] = finite_or_none(error)
+                    # what the report reads of each frame (capture.run.take.summarise_fit, check_head_depths),
+                    # so that it does not read the fit back
+                    status = str(getattr(ff, "status", "fitted"))
+                    summaries.append(FrameSummary(int(ff.frame), status, error,
+                                                  finite_or_none(getattr(ff, "reprojection_rms_px", None))))
+                    if status == "fitted" and getattr(ff, "head_t", None) is not None:
+                        depths[int(ff.frame)] = float(np.asarray(ff.head_t, np.float64).reshape(-1)[2])
                     if face is not None and worst.wants(int(ff.frame), error):
                         worst.keep(int(ff.frame), error, face)
+                    if worst_fits.wants(int(ff.frame), error):   # and their fits, for the thumbnails' meshes
+                        worst_fits.keep(int(ff.frame), error, ff)
                     clocks["export"].busy += time.perf_counter() - t0
                     bar.advance(1)
                 pipe_line.check()
@@ -576,7 +590,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         {"stage": "export", "status": "done", "seconds": c["export"].busy, "finished_after_s": wall,
          "files": len(rel), "streamed": True},
     ]
-    return StreamResult(track, final, log, series, worst.images)
+    return StreamResult(track, final, log, series, worst.images, frames=summaries, head_depths=depths,
+                        worst_fits=worst_fits.images)
 
 
 def _take_landmarks(unexported: deque, frame: int):

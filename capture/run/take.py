@@ -29,7 +29,7 @@ import numpy as np
 from capture.io.errors import CaptureError, Interrupted
 from capture.io.machine import machine
 from capture.run.inputs import RunConfig, resolve_inputs
-from capture.run.report import error_stats, frame_table, versions, write_report
+from capture.run.report import FrameSummary, error_stats, finite_or_none, frame_table, versions, write_report
 from capture.run.stages import LANDMARKS, detect_stage, export_stage, fit_frames, fit_stage, iter_fits
 from capture.run.store import digest, open_run_dir, write_run_json
 from capture.io.signals import sigterm_as_interrupt
@@ -65,24 +65,6 @@ CONFIDENT = 0.5
 THUMBNAIL_FIELDS = ("vertices", "landmarks_fit", "status", "reprojection_rms_px", "error3d_mm")
 
 
-def _finite(v) -> float | None:
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        return None
-    return v if np.isfinite(v) else None
-
-
-@dataclass
-class FrameSummary:
-    """What the report keeps of one frame's fit (the meshes stay on disk)."""
-
-    frame: int
-    status: str
-    error: float | None        # confident-landmark reprojection RMS (px) or 3D error (mm)
-    error_all: float | None = None
-
-
 def confident_rms(f: Any, track, row: dict[int, int]) -> float | None:
     """RMS (px) between the fitted and the detected landmarks whose confidence is >= CONFIDENT.
 
@@ -101,9 +83,11 @@ def confident_rms(f: Any, track, row: dict[int, int]) -> float | None:
 
 
 def summarise_fit(fit_dir: Path, track) -> list[FrameSummary]:
+    """The report's summary of every frame of a finished fit, read back from ``fit_dir`` (a streamed run
+    makes the same as it exports: :attr:`capture.run.stream.StreamResult.frames`)."""
     row = {int(i): j for j, i in enumerate(track.frame_index)}
     return [FrameSummary(int(f.frame), str(f.status), confident_rms(f, track, row),
-                         _finite(getattr(f, "reprojection_rms_px", None)))
+                         finite_or_none(getattr(f, "reprojection_rms_px", None)))
             for f in iter_fits(fit_dir, ("status", "landmarks_fit", "reprojection_rms_px"))]
 
 
@@ -175,6 +159,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
     collector = None           # the report's series, when the stream collected it
     worst_images = None        # and the images of its worst frames
     early: dict = {}           # and its figures, submitted while the stream's files were written
+    summaries = depths = worst_fits = None   # and what the report reads of each frame, and the worst ones' fits
 
     def on_exported(series, errors) -> None:
         if figure_process is not None:
@@ -192,6 +177,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
                                   on_exported=on_exported)
                 log[:] = res.log
                 track, fit_dir, collector, worst_images = res.track, res.fit_dir, res.series, res.thumbnail_images
+                summaries, depths, worst_fits = res.frames, res.head_depths, res.worst_fits
                 check_reasons = check_detections(track, det.name)
                 frames = fit_frames(fit_dir)
                 dets = detections_of(track)
@@ -228,7 +214,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
 
     requested = list(range(*inputs.frame_range)) if cfg.frames is not None else [int(i) for i in track.frame_index]
     reasons = {**skip_reasons(track, det.name), **check_reasons}
-    fits = summarise_fit(fit_dir, track)
+    fits = summarise_fit(fit_dir, track) if summaries is None else summaries
     errors = [f.error for f in fits]
     rows, skipped = frame_table(fits, "reprojection_rms_px", errors, reasons)
     for r, f in zip(rows, fits):
@@ -249,7 +235,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
                   **error_stats(errors),
                   "all_landmarks": error_stats([r["reprojection_rms_all_px"] for r in rows])},
         "skipped_frames": skipped, "per_frame": rows, "notes": inputs.notes})
-    implausible = check_head_depths(fit_dir, rows)
+    implausible = check_head_depths(fit_dir, rows, depths)
     finish_report(report, rows, "reprojection_rms_px", out)
     # the figures drawn from the stream's series stand if its errors are the rows' (the same rule on the same
     # numbers); otherwise html_report submits the rows' series, and the figures drawn first are dropped
@@ -257,7 +243,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
         else None
     html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
                 video=Path(cfg.video), camera=cam, image_size=(info.width, info.height), figure_process=figure_process,
-                collector=collector, images=worst_images, submitted=submitted)
+                collector=collector, images=worst_images, submitted=submitted, fits=worst_fits)
     check_complete(requested, frames)
     if implausible:
         raise CaptureError(implausible)
@@ -316,14 +302,15 @@ def rig_and_features(actor, formats) -> dict:
 def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict], error_key: str, unit: str,
                 fps: float, detections: dict | None = None, video: Path | None = None, camera=None,
                 image_size: tuple[int, int] | None = None, figure_process=None, collector=None,
-                images: dict | None = None, submitted=None) -> Path:
+                images: dict | None = None, submitted=None, fits: dict | None = None) -> Path:
     """``OUT/report.html`` (:mod:`capture.export.report_html`): the take's plots and its worst frames.
 
     ``figure_process`` (:class:`capture.export.report_figures.FigureProcess`) draws the plots while the
     thumbnails are drawn here (None: both here); ``collector`` (:class:`capture.export.report_html.
     SeriesCollector`) has seen the take's fits already (None: they are read from ``fit_dir``); ``images``
     holds the worst frames' images that the stream kept (the others are read from ``video``); ``submitted``
-    is the take's series, already given to ``figure_process`` (the stream's, ``stream_take(on_exported=)``)."""
+    is the take's series, already given to ``figure_process`` (the stream's, ``stream_take(on_exported=)``);
+    ``fits`` the worst frames' fits that the stream kept (else they are read from ``fit_dir``)."""
     from capture.export.features import face_features
     from capture.export.overlay_draw import FrameRenderer, Topology
     from capture.export.report_html import take_series, thumbnails, worst_frames, write_report_html
@@ -345,8 +332,9 @@ def html_report(out: Path, report: dict, fit_dir: Path, actor, rows: list[dict],
         feats = face_features(faces, actor.template_vertices, rig.expressions, rig.names)
         renderer = FrameRenderer(Topology.of(faces, feats), camera, image_size, fps,
                                  ("mesh", "contours", "landmarks"))   # the caption says frame and error
-        thumbs = thumbnails(video, worst, fits_at(fit_dir, worst, THUMBNAIL_FIELDS), detections or {}, renderer,
-                            images=images)
+        kept = fits if fits is not None and all(int(i) in fits for i in worst) else fits_at(fit_dir, worst,
+                                                                                            THUMBNAIL_FIELDS)
+        thumbs = thumbnails(video, worst, kept, detections or {}, renderer, images=images)
     figs = figure_process.result() if figure_process is not None else None
     return write_report_html(out, report, series, thumbs, figs)
 
