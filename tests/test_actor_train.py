@@ -13,7 +13,6 @@ import trimesh
 
 from capture.actor.package import load_actor
 from capture.cli import main
-from models.rotation import rot6d_to_matrix
 from tests.tiny_actor import tiny_shapes, write_tiny_actor_inputs
 
 FAST = ["--width", "64", "--no-progress"]

@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from scipy.spatial.transform import Rotation
 
 from capture.io.errors import CaptureError
 from models.anatomy_constraints import (

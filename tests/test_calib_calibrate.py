@@ -13,7 +13,6 @@ in the wrong units or order, or ignored distortion (k1 = -0.22 bends the corners
 from __future__ import annotations
 
 import json
-import sys
 
 import cv2
 import numpy as np

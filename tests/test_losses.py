@@ -1,6 +1,5 @@
 """Each learning loss on a case whose value is known by hand."""
 
-import math
 
 import pytest
 import torch

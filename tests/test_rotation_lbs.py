@@ -1,6 +1,5 @@
 """6D rotations and jaw LBS against hand-computed cases and scipy."""
 
-import math
 
 import numpy as np
 import pytest
