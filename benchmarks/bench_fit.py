@@ -145,7 +145,7 @@ def main() -> None:
     if not args.no_previous:
         pfits, ptm0 = run(actor, inputs, PREVIOUS_DEFAULT, args.window, args.overlap, args.threads)
         m0 = metrics(pfits, truth)
-        print(f"\n[previous default] (Adam only) same take, run right after")
+        print("\n[previous default] (Adam only) same take, run right after")
         print("  " + stage_line(ptm0, len(pfits)))
         print("  error mean {mean_mm:.3f} mm, p95 {p95_mm:.3f} mm, reprojection RMS {rms_px:.3f} px, "
               "jitter {jitter_mm:.3f} mm".format(**m0))

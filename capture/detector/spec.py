@@ -523,7 +523,7 @@ def parse_face_finder_spec(obj: Any, path: Path | None = None) -> FaceFinderSpec
         if enc == "absolute":
             for key in ("scale", "variances"):
                 if b.get(key) is not None:
-                    b.fail(b.field(key), f"absent for encoding 'absolute' (it belongs to the anchor encodings)",
+                    b.fail(b.field(key), "absent for encoding 'absolute' (it belongs to the anchor encodings)",
                            b.get(key))
             fmt, frame = b.str_("format", BOX_FORMATS), b.str_("frame", FRAMES)
         else:

@@ -49,7 +49,6 @@ import torch
 import trimesh
 from torch import nn
 
-from capture.synth.texture import PositionCode
 
 INPUT_NAME = "image"
 OUTPUTS = ("landmarks", "confidence", "face_score")
