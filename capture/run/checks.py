@@ -74,20 +74,25 @@ def check_detections(track, detector_name: str) -> dict[int, str]:
     return reasons
 
 
+def head_depth(f) -> float | None:
+    """A frame fit's head depth (``head_t`` z, mm) if the frame was fitted, else None."""
+    t = getattr(f, "head_t", None)
+    if t is None or str(getattr(f, "status", "fitted")) != "fitted":
+        return None
+    return float(np.asarray(t, np.float64).reshape(-1)[2])
+
+
 def check_head_depths(fit_dir: Path, rows: list[dict], depths: dict[int, float] | None = None) -> str | None:
     """Flag report rows whose head depth is implausible; the error line when most fitted frames are.
 
-    ``depths``: the fitted frames' head depths (``head_t`` z, mm) by frame, as a streamed run collects them;
-    None: read from the fit in ``fit_dir``."""
+    ``depths``: the fitted frames' :func:`head_depth` by frame, as a streamed run collects them; None: read
+    from the fit in ``fit_dir``."""
     from capture.run.stages import iter_fits
 
     depth = depths
     if depth is None:
-        depth = {}
-        for f in iter_fits(fit_dir, ("head_t", "status")):
-            t = getattr(f, "head_t", None)
-            if t is not None and str(getattr(f, "status", "fitted")) == "fitted":
-                depth[int(f.frame)] = float(np.asarray(t, np.float64).reshape(-1)[2])
+        depth = {int(f.frame): z for f in iter_fits(fit_dir, ("head_t", "status"))
+                 if (z := head_depth(f)) is not None}
     lo, hi = DEPTH_RANGE_MM
     bad = []
     for r in rows:

@@ -8,9 +8,9 @@ the resolved settings and the camera's provenance (including the default-camera 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 import platform
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 

@@ -297,6 +297,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     from capture.export.overlay_draw import confident_rms
     from capture.export.report_html import FaceCrop, SeriesCollector, WorstFrameImages
     from capture.fit.process import FitStopped, FitWorker
+    from capture.run.checks import head_depth
     from capture.io.video import FramePool, VideoReader
     from capture.run.stages import DONE_JSON, EXPORT_JSON, FIT_CHUNK, LANDMARKS, fit_dir_for, fit_key, windowed_fit
 
@@ -524,8 +525,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                     status = str(getattr(ff, "status", "fitted"))
                     summaries.append(FrameSummary(int(ff.frame), status, error,
                                                   finite_or_none(getattr(ff, "reprojection_rms_px", None))))
-                    if status == "fitted" and getattr(ff, "head_t", None) is not None:
-                        depths[int(ff.frame)] = float(np.asarray(ff.head_t, np.float64).reshape(-1)[2])
+                    if (z := head_depth(ff)) is not None:
+                        depths[int(ff.frame)] = z
                     if face is not None and worst.wants(int(ff.frame), error):
                         worst.keep(int(ff.frame), error, face)
                     if worst_fits.wants(int(ff.frame), error):   # and their fits, for the thumbnails' meshes
