@@ -85,10 +85,7 @@ class FigureProcess:
         self._series, self._sent = None, False
 
     def submit(self, series) -> None:
-        """Start drawing ``report_html.figures(series)`` in the process; :meth:`result` gives them (those of
-        the last series submitted: an earlier one's are waited for and dropped)."""
-        if self._sent:
-            self._receive()
+        """Start drawing ``report_html.figures(series)`` in the process; :meth:`result` gives them."""
         self._series = series
         try:
             self._conn.send(series)
@@ -100,20 +97,17 @@ class FigureProcess:
         """The figures of the submitted series, drawn in the process (here, if it was not usable)."""
         from capture.export.report_html import figures
 
-        figs = self._receive() if self._sent else None
-        return figs if figs is not None else figures(self._series)
-
-    def _receive(self) -> list[tuple[str, str]] | None:
-        """The process's answer to the series sent (None if it failed or is gone)."""
-        self._sent = False
         try:
-            while not self._conn.poll(0.2):
-                if not self._proc.is_alive():
-                    raise EOFError
-            status, figs = self._conn.recv()
-            return figs if status == "ok" else None
+            if self._sent:
+                while not self._conn.poll(0.2):
+                    if not self._proc.is_alive():
+                        raise EOFError
+                status, figs = self._conn.recv()
+                if status == "ok":
+                    return figs
         except (EOFError, OSError, ValueError):
-            return None
+            pass
+        return figures(self._series)
 
     def close(self) -> None:
         try:

@@ -285,10 +285,10 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
 
     ``export_key(track)`` gives the export's key once the take's landmarks are known;
     ``detection_factory(frame_landmarks)`` gives what the exporters read beside a fit.
-    ``on_exported(series, errors)`` is called once every fit was handed to the exporters, before they
+    ``on_exported(series, frames)`` is called once every fit was handed to the exporters, before they
     finish their files: the report's :class:`capture.export.report_html.SeriesCollector` (with the frames'
-    detections) and each frame's reprojection error (``{frame: px or None}``, the report's
-    ``reprojection_rms_px``), so that the report's figures are drawn while the files are written.
+    detections) and :attr:`StreamResult.frames` (complete by then), so that the report's figures are drawn
+    while the files are written.
     Returns the track, the finished fit folder and the stage log (detect, fit, export).
     """
     from capture.detector.pipeline import TrackBuilder, _segment_path, _write_segment, stack_frames
@@ -474,7 +474,6 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         fits.put(_END)
 
     worst, worst_fits = WorstFrameImages(), WorstFrameImages()
-    errors: dict[int, float | None] = {}
     summaries: list[FrameSummary] = []
     depths: dict[int, float] = {}
 
@@ -519,7 +518,6 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                     series.add(ff, detection)    # the report's series, while the fit works on (not read back)
                     face = image if image is not None else face_crops.pop(int(ff.frame), None)
                     error = confident_rms(ff, detection)
-                    errors[int(ff.frame)] = finite_or_none(error)
                     # what the report reads of each frame (capture.run.take.summarise_fit, check_head_depths),
                     # so that it does not read the fit back
                     status = str(getattr(ff, "status", "fitted"))
@@ -535,7 +533,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                     bar.advance(1)
                 pipe_line.check()
                 if on_exported is not None:
-                    on_exported(series, errors)
+                    on_exported(series, summaries)
                 t_close = time.perf_counter()     # the writers finish (USD's last block, NPZ) as the block ends
             finally:
                 if reader is not None:

@@ -161,9 +161,10 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
     early: dict = {}           # and its figures, submitted while the stream's files were written
     summaries = depths = worst_fits = None   # and what the report reads of each frame, and the worst ones' fits
 
-    def on_exported(series, errors) -> None:
-        if figure_process is not None:
-            early.update(errors=errors, series=series.series(info.fps, inputs.actor.face_rig().names, errors, "px"))
+    def on_exported(series, frames) -> None:
+        if figure_process is not None:     # the errors of the report's rows, which are made of the same frames
+            errors = {f.frame: finite_or_none(f.error) for f in frames}
+            early["series"] = series.series(info.fps, inputs.actor.face_rig().names, errors, "px")
             figure_process.submit(early["series"])
     with sigterm_as_interrupt():
         try:
@@ -237,13 +238,9 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
         "skipped_frames": skipped, "per_frame": rows, "notes": inputs.notes})
     implausible = check_head_depths(fit_dir, rows, depths)
     finish_report(report, rows, "reprojection_rms_px", out)
-    # the figures drawn from the stream's series stand if its errors are the rows' (the same rule on the same
-    # numbers); otherwise html_report submits the rows' series, and the figures drawn first are dropped
-    submitted = early.get("series") if early.get("errors") == {r["frame"]: r["reprojection_rms_px"] for r in rows} \
-        else None
     html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
                 video=Path(cfg.video), camera=cam, image_size=(info.width, info.height), figure_process=figure_process,
-                collector=collector, images=worst_images, submitted=submitted, fits=worst_fits)
+                collector=collector, images=worst_images, submitted=early.get("series"), fits=worst_fits)
     check_complete(requested, frames)
     if implausible:
         raise CaptureError(implausible)
