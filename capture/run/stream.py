@@ -280,7 +280,7 @@ class StreamResult:
 
 def stream_take(inputs, out: Path, export_context, formats, export_key: Callable[[Any], dict],
                 detection_factory: Callable[[Any], Any], progress: bool = True,
-                on_exported: Callable[[Any, dict], None] | None = None) -> StreamResult:
+                on_exported: Callable[[Any, list], None] | None = None) -> StreamResult:
     """Run detect, fit and export of a take together (see the module docstring).
 
     ``export_key(track)`` gives the export's key once the take's landmarks are known;
