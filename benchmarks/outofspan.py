@@ -6,7 +6,11 @@ Pure data and baselines (no AIM fit here; see ``bench_outofspan.py``):
   in front of the default 1280x720 camera exactly as ``capture synth`` frames a take
   (:func:`capture.synth.scene.head_transforms` at rest; the performance carries its own head motion),
   its landmarks (``capture synth``'s farthest-point set on the template) projected, those facing away
-  from the camera dropped (NaN, weight 0), Gaussian noise of ``noise_px`` per axis.
+  from the camera dropped (NaN, weight 0), Gaussian noise of ``noise_px`` per axis: independent per
+  frame (``noise="iid"``), or as a detector errs (``noise="detector"``): a bias per landmark that stays
+  for the whole take (the detector's landmark is not quite the mesh point) plus an error that changes
+  slowly over the frames (AR(1), correlation 0.8 from one frame to the next: consecutive frames look
+  alike to the network), each of std ``noise_px`` per axis.
 * :func:`fit_blendshapes_2d`: the plain baseline an animator would use: per frame a rigid head pose
   and blendshape weights (bounded to [0, 1] by default) on the SAME landmarks, by
   :func:`scipy.optimize.least_squares` (trust region reflective, analytic Jacobian), warm-started from
@@ -27,6 +31,8 @@ from scipy.spatial.transform import Rotation
 #: Regions of the face for per-region errors: ICT vertex ranges are not labelled, so regions are boxes in
 #: the template frame (mm) relative to the nose tip: mouth (lips, jaw front), eyes, brows.
 FACING_MIN_COS = 0.1
+NOISE_MODELS = ("iid", "detector")
+DETECTOR_NOISE_CORRELATION = 0.8   # AR(1) correlation of a landmark's error between consecutive frames
 
 
 @dataclass
@@ -51,8 +57,24 @@ def place_in_camera(vertices_head: np.ndarray, template_vertices: np.ndarray, ca
     return R[0], t[0]
 
 
+def landmark_noise(rng: np.random.Generator, T: int, L: int, noise_px: float, model: str = "iid") -> np.ndarray:
+    """``(T, L, 2)`` px of landmark error (the module docstring's ``noise`` models)."""
+    if model == "iid":
+        return rng.normal(0.0, noise_px, (T, L, 2))
+    if model != "detector":
+        raise ValueError(f"noise model {model!r}: use one of {', '.join(NOISE_MODELS)}")
+    rho = DETECTOR_NOISE_CORRELATION
+    bias = rng.normal(0.0, noise_px, (L, 2))
+    innovations = rng.normal(0.0, noise_px * np.sqrt(1.0 - rho * rho), (T, L, 2))
+    slow = np.empty((T, L, 2))
+    slow[0] = rng.normal(0.0, noise_px, (L, 2))          # stationary from the first frame
+    for j in range(1, T):
+        slow[j] = rho * slow[j - 1] + innovations[j]
+    return bias + slow
+
+
 def landmark_take(vertices_head: np.ndarray, template, landmarks: int, noise_px: float, seed: int,
-                  size: tuple[int, int] = (1280, 720)) -> LandmarkTake:
+                  size: tuple[int, int] = (1280, 720), noise: str = "iid") -> LandmarkTake:
     """Project ``vertices_head (T, V, 3)`` (template frame, mm) as a take (see the module docstring)."""
     from calib.camera import default_camera
     from capture.synth.detector_onnx import sample_landmarks
@@ -71,7 +93,7 @@ def landmark_take(vertices_head: np.ndarray, template, landmarks: int, noise_px:
     ray = -p3 / np.linalg.norm(p3, axis=-1, keepdims=True)
     seen = np.einsum("tlc,tlc->tl", n, ray) > FACING_MIN_COS
     rng = np.random.default_rng(seed)
-    p2 = project(camera, p3) + rng.normal(0.0, noise_px, p3.shape[:2] + (2,))
+    p2 = project(camera, p3) + landmark_noise(rng, p3.shape[0], p3.shape[1], noise_px, noise)
     p2[~seen] = np.nan
     tp = np.einsum("lk,lkc->lc", lms.barycentric, tv[tf[lms.face_index]])
     return LandmarkTake(p2, seen.astype(np.float64), tp, lms.face_index, lms.barycentric, camera,
