@@ -4,12 +4,15 @@ The performance (:mod:`benchmarks.heldout`): the bundled sample actor's ICT iden
 expressions outside the demo actor's 19 training shapes (partial weights, partial jaw shapes, rigid
 head motion), ``--sequences`` sequences of ``--frames`` frames. Each sequence is seen through the
 default 1280x720 camera as ``capture synth --meshes`` frames it, its landmarks (``capture synth``'s
-set) projected with Gaussian noise, back-facing ones dropped (:mod:`benchmarks.outofspan`); every
-method gets the SAME landmarks:
+set) projected with Gaussian noise (``--noise detector``: a bias per landmark and an error that changes slowly
+over frames, as a detector errs), back-facing ones dropped (:mod:`benchmarks.outofspan`); every method gets the
+SAME landmarks:
 
 * ``AIM default``: :func:`capture.fit_take.fit_take` (the fit behind ``capture run``), preset
   ``default``, window 30 / overlap 6, one fit per sequence;
 * ``AIM previous default`` (``--previous``): the default preset as it was before issue 12;
+* ``AIM <preset>, fixed prior`` (``--fixed-prior``): the same preset without the noise-adaptive smoothing
+  (``adaptive_ref_px`` 0: the coefficients' temporal prior as tuned, whatever the landmarks' noise);
 * ``GBS19 [0,1]``: per frame rigid pose + the actor's 19 training shapes (exact ICT deltas), weights
   in [0, 1] (the blendshape rig an animator would use; the baseline);
 * ``GBS19+mirrored [0,1]`` (``--mirrored-baseline``): the same with the 19 shapes plus the mirrors of the
@@ -31,6 +34,7 @@ on ``--seed 100`` (different sequences, expressions and noise). JSON to ``--out`
 Usage:
     python benchmarks/bench_outofspan.py [--sequences 4] [--frames 90] [--configs 1000:0.5,300:0.5] [--quick]
     python benchmarks/bench_outofspan.py --seeds 0,1,2,3,4,5 --configs 1000:0.5 --no-bound [--compare-actor A]
+    python benchmarks/bench_outofspan.py --seeds 0,1,2,3,4,5 --no-bound --fixed-prior [--noise detector]
 """
 
 from __future__ import annotations
@@ -56,7 +60,7 @@ from benchmarks.heldout import (
     make_performance,
     sample_actor_split,
 )
-from benchmarks.outofspan import at_landmarks, fit_blendshapes_2d, landmark_take
+from benchmarks.outofspan import NOISE_MODELS, at_landmarks, fit_blendshapes_2d, landmark_take
 from benchmarks.takes import DEFAULT_ACTOR, REPO, accuracy
 
 SAMPLE_JSON = REPO / "capture" / "data" / "sample_actor" / "sample.json"
@@ -141,8 +145,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--seeds", default="", help="several seeds, comma-separated (e.g. 0,1,2,3,4,5): each as "
                                                 "--seed, then the means over all their sequences")
     ap.add_argument("--configs", default="1000:0.5,1000:1.5,300:0.5,300:1.5", help="landmarks:noise_px, ...")
+    ap.add_argument("--noise", default="iid", choices=NOISE_MODELS,
+                    help="landmark errors: iid per frame, or detector (a bias per landmark + an error that changes "
+                         "slowly over frames, each of the configuration's std)")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--previous", action="store_true", help="also the default preset as it was before issue 12")
+    ap.add_argument("--fixed-prior", action="store_true",
+                    help="also the preset without its noise-adaptive smoothing (adaptive_ref_px 0)")
     ap.add_argument("--compare-actor", default=None, help="a second actor fitted side by side (same preset)")
     ap.add_argument("--mirrored-baseline", action="store_true",
                     help="also GBS with the 19 shapes plus the mirrors of the one-sided ones")
@@ -183,9 +192,10 @@ def main(argv: list[str] | None = None) -> dict:
     paper = replace(FIT_PRESETS["paper"], iterations=args.paper_iterations, warm_iterations=None)
     print(f"held-out performance (seed {args.seed}): {json.dumps(perf.describe())}")
     res = {"performance": perf.describe(), "seed": args.seed, "actor": str(args.actor), "preset": args.preset,
-           "settings": settings.to_dict(), "window": args.window, "overlap": args.overlap, "configs": []}
+           "noise_model": args.noise, "settings": settings.to_dict(), "window": args.window, "overlap": args.overlap,
+           "configs": []}
     for n_lm, noise in configs:
-        take = landmark_take(perf.vertices, actor.template, n_lm, noise, args.seed)
+        take = landmark_take(perf.vertices, actor.template, n_lm, noise, args.seed, noise=args.noise)
         cfg = {"landmarks": n_lm, "noise_px": noise, "seen_fraction": float(take.weights.mean()), "sequences": []}
         print(f"\n[{n_lm} landmarks, {noise} px] seen {take.weights.mean():.2f}; load average "
               f"{os.getloadavg()[0]:.1f} (2 cores shared: times are inflated)", flush=True)
@@ -198,6 +208,10 @@ def main(argv: list[str] | None = None) -> dict:
             if other is not None:
                 V, rms, sec = fit_aim(other, take, idx, settings, args.window, args.overlap)
                 row["methods"][f"AIM {args.preset} [{Path(args.compare_actor).name}]"] = figures(V, truth, rms, masks, sec)
+            if args.fixed_prior:
+                V, rms, sec = fit_aim(actor, take, idx, replace(settings, adaptive_ref_px=0.0), args.window,
+                                      args.overlap)
+                row["methods"][f"AIM {args.preset}, fixed prior"] = figures(V, truth, rms, masks, sec)
             if args.previous:
                 V, rms, sec = fit_aim(actor, take, idx, previous_default(), args.window, args.overlap)
                 row["methods"]["AIM previous default"] = figures(V, truth, rms, masks, sec)
@@ -225,7 +239,8 @@ def main(argv: list[str] | None = None) -> dict:
     res["load_average"] = os.getloadavg()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    p = out / ("outofspan_quick.json" if args.quick else f"outofspan_seed{args.seed}.json")
+    suffix = "" if args.noise == "iid" else f"_{args.noise}"
+    p = out / ("outofspan_quick.json" if args.quick else f"outofspan_seed{args.seed}{suffix}.json")
     write_text(p, json.dumps(res, indent=1))
     print(f"\nnumbers: {p}")
     return res
@@ -257,7 +272,8 @@ def over_seeds(argv: list[str] | None, seeds: list[int], out: Path) -> dict:
             print(f"  {name:42s} mean {allv.mean():.3f} mm, median {np.median(allv):.3f} over {len(allv)} "
                   f"sequences; per seed " + " / ".join(f"{np.mean(v):.3f}" for v in per_seed.values()))
     res = {"seeds": seeds, "summary": summary, "per_seed": runs}
-    p = out / f"outofspan_seeds{seeds[0]}-{seeds[-1]}.json"
+    noise = runs[0].get("noise_model", "iid")
+    p = out / f"outofspan_seeds{seeds[0]}-{seeds[-1]}{'' if noise == 'iid' else '_' + noise}.json"
     write_text(p, json.dumps(res, indent=1))
     print(f"numbers: {p}")
     return res

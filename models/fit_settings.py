@@ -83,6 +83,20 @@ class FitSettings:
     so a motion the camera cannot see (along its axis) is not invented."""
     field_iterations: int = 0
     """Gauss-Newton iterations of the field after each Levenberg-Marquardt solve of the base."""
+    adaptive_ref_px: float = 0.0
+    """Noise-adaptive smoothing of 2D fits (:mod:`models.fit_noise`): each window's ``coeff_temporal_weight``
+    is multiplied by ``(sigma / adaptive_ref_px) * (adaptive_ref_landmarks / L)``, times
+    ``(s / adaptive_ref_px_per_mm)^2`` when that is below 1,
+    clamped to ``[1, adaptive_max]``, with ``sigma`` the landmark noise (px), ``L`` the landmarks per frame and
+    ``s`` the face's px per mm, read from the previous window's landmarks and residuals (the first window is
+    solved, read, and solved again). 0 = off (the prior as set; 3D fits always)."""
+    adaptive_ref_landmarks: float = 800.0
+    """The landmarks per frame at which ``coeff_temporal_weight`` was tuned."""
+    adaptive_max: float = 30.0
+    """The largest multiple of ``coeff_temporal_weight`` the noise may ask for."""
+    adaptive_ref_px_per_mm: float = 0.0
+    """The face's size in the image (px per mm, :func:`models.fit_noise.face_px_per_mm`) at which
+    ``coeff_temporal_weight`` was tuned; a smaller face's scale is multiplied by ``(px_per_mm / this)^2`` (0 = not)."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -103,10 +117,15 @@ FIT_PRESETS: dict[str, FitSettings] = {
     # 1 px loss LM needs more steps to its 1e-6 tolerance (1.7x the time) for < 0.001 mm: lm_tol 1e-4;
     # issue 16 then took 1e-3 (a window's last step lowered its energy by 1e-5 - 5e-5; on seeds 100, 6,
     # 7 the same errors to 0.001 mm, jitter to 1e-5 mm, one linearisation fewer per window).
+    # Issue 12 (detectors as users have them) then made the coefficients' temporal prior follow the landmarks'
+    # noise and number (adaptive_ref_px: the noise the residuals read at the tuning conditions, 1,000
+    # landmarks of which ~800 seen, 0.5 px, a 1280x720 camera with the face at 1.65 px per mm;
+    # models/fit_noise.py).
     "default": FitSettings(hidden=64, lr=1e-2, temporal_weight=0.5, early_stop_tol=2e-3, lm_iterations=10,
                            lm_polish_iterations=10, pose_accel_weight=10.0, coeff_temporal_weight=1.0,
                            jaw_prior_weight=1.0, jaw_prior_target="expressions", robust_px=1.0,
-                           lm_tol=1e-3, adam_on_landmarks=False),
+                           lm_tol=1e-3, adam_on_landmarks=False, adaptive_ref_px=0.53,
+                           adaptive_ref_px_per_mm=1.65),
     "paper": FitSettings(iterations=10_000, lr=1e-3, lr_final_fraction=1.0, coeff_weight=0.75, robust_px=0.0,
                          warm_iterations=None),
     # default + the per-point coefficient field (models/fit_field.py) on 2D takes: 32 centres (sigma 10 mm)
@@ -118,7 +137,8 @@ FIT_PRESETS: dict[str, FitSettings] = {
                          lm_polish_iterations=10, pose_accel_weight=10.0, coeff_temporal_weight=1.0,
                          jaw_prior_weight=1.0, jaw_prior_target="expressions", robust_px=1.0,
                          adam_on_landmarks=False, field_centres=32, field_sigma_mm=10.0, field_iterations=2,
-                         field_weight=1.0, field_temporal_weight=1.0, field_motion_weight=10.0),
+                         field_weight=1.0, field_temporal_weight=1.0, field_motion_weight=10.0, adaptive_ref_px=0.53,
+                         adaptive_ref_px_per_mm=1.65),
 }
 
 
@@ -131,7 +151,8 @@ FIT_PRESETS: dict[str, FitSettings] = {
 #: 0.060 against 0.106 mm, at about the same time per frame. ``paper``: the paper's settings.
 FIT3D_PRESETS: dict[str, FitSettings] = {
     "default": replace(FIT_PRESETS["default"], iterations=0, warm_iterations=None, coeff_weight=1e-4,
-                       field_centres=256, field_sigma_mm=8.0, field_iterations=3, field_weight=1e-4),
-    "networks": FIT_PRESETS["default"],
+                       field_centres=256, field_sigma_mm=8.0, field_iterations=3, field_weight=1e-4,
+                       adaptive_ref_px=0.0),
+    "networks": replace(FIT_PRESETS["default"], adaptive_ref_px=0.0),
     "paper": FIT_PRESETS["paper"],
 }

@@ -233,6 +233,57 @@ def test_bench_outofspan_quick(tmp_path):
     assert (tmp_path / "outofspan_quick.json").is_file()
 
 
+def test_detector_like_landmark_noise_has_its_bias_correlation_and_spread():
+    """``noise="detector"``: a bias per landmark that stays for the take plus an AR(1) error of correlation
+    0.8 between frames, each of std ``noise_px``; ``"iid"`` draws exactly what the benchmark always drew.
+    Tolerances: the bias's std from 800 draws has a relative standard error of 2.5 % (0.1 = 4 of them); the
+    AR part's 2,000 frames x 800 values, effectively ~1/9 of that, estimate std and correlation to < 1 %."""
+    from benchmarks.outofspan import DETECTOR_NOISE_CORRELATION, landmark_noise
+
+    T, L, s = 2000, 400, 1.5
+    e = landmark_noise(np.random.default_rng(1), T, L, s, "detector")
+    bias = e.mean(0)                                   # the AR part averages out over 2,000 frames (to 0.07 s)
+    slow = e - bias
+    assert np.std(bias) == pytest.approx(s, rel=0.1)
+    assert np.std(slow) == pytest.approx(s, rel=0.05)
+    lag1 = np.mean(slow[1:] * slow[:-1]) / np.mean(slow * slow)
+    assert lag1 == pytest.approx(DETECTOR_NOISE_CORRELATION, abs=0.02)
+    np.testing.assert_array_equal(landmark_noise(np.random.default_rng(2), 3, L, s, "iid"),
+                                  np.random.default_rng(2).normal(0.0, s, (3, L, 2)))
+    with pytest.raises(ValueError, match="noise model"):
+        landmark_noise(np.random.default_rng(0), 2, 2, 1.0, "gauss")
+
+
+@needs_ict
+def test_bench_depth_rules_no_change_and_rules_are_measured_on_the_same_vertices(tmp_path):
+    """The thickness and volume rules against ICT's held-out expressions: pooled errors are finite and
+    positive; the thickness change is at most the motion (a distance to a fixed surface changes by at most
+    the point's displacement), and 'no depth motion' errs by the depth component of the motion (<= it)."""
+    from benchmarks.bench_depth_rules import main
+
+    res = main(["--every", "40", "--out", str(tmp_path / "rules.json")])
+    for w in ("1.0", "0.5"):
+        for name, r in res["weights"][w]["expressions"].items():
+            assert r["vertices"] > 0 and all(np.isfinite(v) for v in r.values()), name
+            assert r["thickness_change"] <= r["motion"] + 1e-6 and r["depth_no_motion"] <= r["motion"] + 1e-9, name
+    assert (tmp_path / "rules.json").is_file()
+
+
+def test_bench_noise_adaptive_quick(tmp_path):
+    """One small take at 1.5 px: the default reads that noise from its residuals (within 15 %: 300 landmarks,
+    40 frames) and scales its prior up (a smaller face than the tuning's: less than the noise rule alone);
+    the fixed prior reads nothing; both fit the same landmarks."""
+    from benchmarks.bench_noise_adaptive import main
+
+    res = main(["--quick", "--noise", "1.5:iid", "--out", str(tmp_path / "na.json")])
+    (row,) = res["rows"]
+    a, f = row["methods"]["adaptive (default)"], row["methods"]["fixed prior"]
+    assert a["landmark_noise_px"] == pytest.approx(1.5, rel=0.15) and "landmark_noise_px" not in f
+    assert 1 < a["temporal_prior_scale_min"] <= a["temporal_prior_scale_max"] < 1.5 / 0.53 * 800 / 200
+    assert np.isfinite(a["mean_mm"]) and np.isfinite(f["mean_mm"]) and a["mean_mm"] != f["mean_mm"]
+    assert (tmp_path / "na.json").is_file()
+
+
 @needs_ict
 def test_bench_outofspan_limits_quick():
     from benchmarks.bench_outofspan_limits import main

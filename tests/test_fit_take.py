@@ -226,3 +226,49 @@ def test_warm_state_moves_the_new_frames_by_the_last_overlap_frames_correction()
     st = _warm_state(prev, 10, 16, 16, 3, R_init[6:], t_init[6:])   # no overlap: the initial poses
     torch.testing.assert_close(st["head_R0"], R_init[6:])
     torch.testing.assert_close(st["head_t0"], t_init[6:])
+
+
+def _fit(take, settings, points=None, timings=None) -> list[FrameFit]:
+    lm = TakeLandmarks(take["points"] if points is None else points, take["weights"], take["found"],
+                       take["template_points"])
+    return list(fit_take(take["actor"], lm, take["camera"], WindowedFit(settings, WINDOW, OVERLAP, threads=1),
+                         timings=timings))
+
+
+def test_noise_adaptive_smoothing_reads_the_noise_and_is_the_tuned_prior_at_scale_1(take, clean):
+    """The default reads the landmarks' noise from its residuals (0.5 px added here; the tiny actor explains
+    its own take, so the residuals are that noise) and scales the coefficients' temporal prior by
+    models.fit_noise's rule; where the rule gives 1 the fit is the fixed prior's, to the bit (no second
+    solve, the same settings)."""
+    from models.fit_noise import temporal_prior_scale
+
+    assert SETTINGS.adaptive_ref_px > 0
+    tm: dict = {}
+    fits = _fit(take, SETTINGS, timings=tm)
+    np.testing.assert_array_equal(np.stack([f.vertices for f in fits]), np.stack([f.vertices for f in clean]))
+    assert 0.45 < tm["landmark_noise_px"] < 0.6
+    assert 140 < tm["landmarks_per_frame"] < 200 and 0 < tm["face_px_per_mm"] < SETTINGS.adaptive_ref_px_per_mm
+    k = temporal_prior_scale(tm["landmark_noise_px"], tm["landmarks_per_frame"], SETTINGS.adaptive_ref_px,
+                             SETTINGS.adaptive_ref_landmarks, SETTINGS.adaptive_max, tm["face_px_per_mm"],
+                             SETTINGS.adaptive_ref_px_per_mm)
+    # a fifth of the tuning's landmarks on a face half its size in the image: 5 x 0.5^2, a little above 1
+    assert 1 < tm["temporal_prior_scale_min"] <= tm["temporal_prior_scale_max"] < 2
+    assert 0.95 * tm["temporal_prior_scale_min"] <= k <= 1.05 * tm["temporal_prior_scale_max"]
+    fixed = _fit(take, replace(SETTINGS, adaptive_ref_px=0.0))
+    at_one = _fit(take, replace(SETTINGS, adaptive_ref_landmarks=1.0))     # the rule's k < 1: clamped to 1
+    np.testing.assert_array_equal(np.stack([f.vertices for f in at_one]), np.stack([f.vertices for f in fixed]))
+    assert np.abs(np.stack([f.vertices for f in fits]) - np.stack([f.vertices for f in fixed])).max() > 1e-3
+
+
+def test_noise_adaptive_smoothing_resumes_from_the_cache_to_the_same_fit(take, clean, tmp_path):
+    """The scale of each window comes from the one before: a fit resumed from cached windows (each read back,
+    not solved) carries the same scales and gives the same frames as the fit in one go."""
+    lm = TakeLandmarks(take["points"], take["weights"], take["found"], take["template_points"])
+    how = WindowedFit(SETTINGS, WINDOW, OVERLAP, cache_dir=tmp_path / "cache", threads=1)
+    first: dict = {}
+    list(fit_take(take["actor"], lm, take["camera"], how, timings=first))
+    again: dict = {}
+    fits = list(fit_take(take["actor"], lm, take["camera"], how, timings=again))
+    assert again["windows_solved"] == 0 and again["windows_cached"] == first["windows_solved"] > 1
+    assert again["temporal_prior_scale_max"] == first["temporal_prior_scale_max"] > 1
+    np.testing.assert_array_equal(np.stack([f.vertices for f in fits]), np.stack([f.vertices for f in clean]))

@@ -40,7 +40,7 @@ import contextlib
 import hashlib
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
@@ -54,6 +54,7 @@ from capture.io.atomic import atomic_path
 from capture.fit.init import PnPSettings, initial_head_poses, rigid_align
 from models.fit import (FIT3D_PRESETS, FIT_PRESETS, ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence,
                         pose_face)
+from models.fit_noise import face_px_per_mm, residual_noise_px, temporal_prior_scale
 
 __all__ = ["FrameFit", "fit_take", "fit_meshes", "resolve_settings", "resolved_settings_dict", "window_plan",
            "farthest_point_sample"]
@@ -387,6 +388,9 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
         cache_dir.mkdir(parents=True, exist_ok=True)
     prev_state, prev_range, prev_key = None, None, base_key
     held: list[tuple[int, dict]] = []   # the previous window's overlap frames, awaiting the blend
+    adaptive = settings.adaptive_ref_px > 0 and K is not None   # 2D fits: smoothing follows the noise
+    neutral = fit_actor.neutral.cpu().double().numpy() if adaptive else None   # (L, 3) the landmarks' template
+    scale = 1.0                         # of coeff_temporal_weight, read from the previous window
     s = 0
     done = 0
     while True:
@@ -403,16 +407,25 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
                 warm = None if prev_state is None else _warm_state(prev_state, *prev_range, win.start, J,
                                                                     win.head_R0, win.head_t0)
                 n_it = settings.iterations if warm is None else (settings.warm_iterations or settings.iterations)
-                res = fit_sequence(fit_actor, win.obs, settings, win.head_R0, win.head_t0, warm_start=warm,
-                                   iterations=n_it)
-                state = {k: v.detach().clone() for k, v in res.fit.state_dict().items()}
-                tm["solve_s"] += time.perf_counter() - t0
-                tm["iterations"] += len(res.losses)
-                tm["lm_iterations"] += res.lm_iterations
+                # the first window of an adaptive fit is solved, its noise read, and solved again from there
+                for again in (False, True):
+                    res = fit_sequence(fit_actor, win.obs, _with_temporal_scale(settings, scale), win.head_R0,
+                                       win.head_t0, warm_start=warm, iterations=n_it)
+                    state = {k: v.detach().clone() for k, v in res.fit.state_dict().items()}
+                    tm["solve_s"] += time.perf_counter() - t0
+                    tm["iterations"] += len(res.losses)
+                    tm["lm_iterations"] += res.lm_iterations
+                    t0 = time.perf_counter()
+                    raw = _window_outputs(state, settings, fit_actor, out_actor, K, dist)
+                    tm["outputs_s"] += time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    if again or not adaptive or prev_state is not None:
+                        break
+                    first = _noise_scale(win.obs, raw, settings, neutral, None)
+                    if first == scale:
+                        break
+                    scale, warm = first, state
                 tm["windows_solved"] += 1
-                t0 = time.perf_counter()
-                raw = _window_outputs(state, settings, fit_actor, out_actor, K, dist)
-                tm["outputs_s"] += time.perf_counter() - t0
                 if cache_dir is not None:
                     _save_cached(cache_dir, win.start, key, state, raw)
             else:
@@ -440,9 +453,37 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
         held = [(win.start + i, _frame(raw, i)) for i in range(J - n_hold, J)]
         source.release(win.end - n_hold)
         prev_state, prev_range, prev_key = state, (win.start, win.end), key
+        if adaptive:
+            scale = _noise_scale(win.obs, raw, settings, neutral, tm)
         if win.last:
             return
         s = win.end - n_hold
+
+
+def _with_temporal_scale(settings: FitSettings, scale: float) -> FitSettings:
+    return settings if scale == 1.0 else replace(settings, coeff_temporal_weight=settings.coeff_temporal_weight * scale)
+
+
+def _noise_scale(obs: Observations, raw: dict, settings: FitSettings, neutral: np.ndarray, tm: dict | None) -> float:
+    """The temporal prior's scale for the next solve, from a solved window's residuals (models.fit_noise);
+    records the window's noise and the scales' range in ``tm`` (unless None)."""
+    p2, w2 = obs.points2d.cpu().numpy(), obs.weights.cpu().numpy()
+    sigma, per_frame = residual_noise_px(p2, w2, raw["landmarks_fit"])
+    ppm = face_px_per_mm(p2, w2, neutral) if settings.adaptive_ref_px_per_mm > 0 else float("nan")
+    k = temporal_prior_scale(sigma, per_frame, settings.adaptive_ref_px, settings.adaptive_ref_landmarks,
+                             settings.adaptive_max, ppm, settings.adaptive_ref_px_per_mm)
+    if tm is None:
+        return k
+    if np.isfinite(sigma):
+        noise = tm.setdefault("_landmark_noise_px", [])
+        noise.append(sigma)
+        tm["landmark_noise_px"] = float(np.median(noise))
+        tm["landmarks_per_frame"] = per_frame
+        if np.isfinite(ppm):
+            tm["face_px_per_mm"] = ppm
+    tm["temporal_prior_scale_min"] = min(k, tm.get("temporal_prior_scale_min", k))
+    tm["temporal_prior_scale_max"] = max(k, tm.get("temporal_prior_scale_max", k))
+    return k
 
 
 def _fingerprint(*parts) -> str:

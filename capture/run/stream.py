@@ -584,7 +584,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
          "frames": len(fx.get("frames", [])), "fit_dir": str(final), "streamed": True,
          "fit_process": bool(fx.get("process")),
          **{k: fx[k] for k in ("query_s", "pnp_s", "solve_s", "outputs_s", "windows_solved", "windows_cached",
-                                    "peak_rss_mb")
+                                    "peak_rss_mb", "landmark_noise_px", "landmarks_per_frame",
+                                    "temporal_prior_scale_min", "temporal_prior_scale_max")
             if k in fx}},
         {"stage": "export", "status": "done", "seconds": c["export"].busy, "finished_after_s": wall,
          "files": len(rel), "streamed": True},
