@@ -64,14 +64,18 @@ def face_px_per_mm(points2d: np.ndarray, weights: np.ndarray, template_points: n
     their centroid (px) over that of their template points (mm, 3D). ``points2d (J, L, 2)``, ``weights (J, L)``,
     ``template_points (L, 3)``; nan when no frame uses 3 landmarks."""
     p, w, X = np.asarray(points2d, np.float64), np.asarray(weights, np.float64), np.asarray(template_points, np.float64)
-    out = []
-    for pj, wj in zip(p, w):
-        used = (wj > 0) & np.isfinite(pj).all(-1)
-        if used.sum() < 3:
-            continue
-        a, b = pj[used], X[used]
-        out.append(np.sqrt(np.square(a - a.mean(0)).sum(1).mean() / max(np.square(b - b.mean(0)).sum(1).mean(), 1e-12)))
-    return float(np.median(out)) if out else float("nan")
+    used = (w > 0) & np.isfinite(p).all(-1)                                   # (J, L)
+    n = used.sum(1)
+    ok = n >= 3
+    if not ok.any():
+        return float("nan")
+    u = used[ok].astype(np.float64)                                           # (J', L)
+    n = n[ok].astype(np.float64)
+    pz = np.where(used[ok][..., None], p[ok], 0.0)                            # (J', L, 2)
+    # RMS spread about the centroid: mean |a|^2 - |mean a|^2, over the landmarks used
+    spread_px = np.einsum("jlc,jlc->j", pz, pz) / n - np.square(pz.sum(1) / n[:, None]).sum(1)
+    spread_mm = u @ np.square(X).sum(1) / n - np.square(u @ X / n[:, None]).sum(1)
+    return float(np.median(np.sqrt(np.maximum(spread_px, 0.0) / np.maximum(spread_mm, 1e-12))))
 
 
 def temporal_prior_scale(sigma_px: float, landmarks: float, ref_px: float, ref_landmarks: float,
