@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repo's packages
-from benchmarks.outofspan import DETECTOR_NOISE_CORRELATION, landmark_noise
+from benchmarks.outofspan import DETECTOR_NOISE_CORRELATION, ar1, landmark_noise
 from benchmarks.takes import DEFAULT_ACTOR, REPO, accuracy, synth
 
 # size, motion, seed, landmarks (seeds not used by the other benchmarks' takes)
@@ -46,12 +46,8 @@ def errors(rng: np.random.Generator, T: int, L: int, px: float, model: str) -> n
     if model != "slow":
         return landmark_noise(rng, T, L, px, model)
     rho = DETECTOR_NOISE_CORRELATION
-    out = np.empty((T, L, 2))
-    out[0] = rng.normal(0.0, px, (L, 2))
-    innovations = rng.normal(0.0, px * np.sqrt(1 - rho * rho), (T, L, 2))
-    for j in range(1, T):
-        out[j] = rho * out[j - 1] + innovations[j]
-    return out
+    first = rng.normal(0.0, px, (L, 2))
+    return ar1(first, rng.normal(0.0, px * np.sqrt(1 - rho * rho), (T, L, 2)), rho)
 
 
 def main(argv: list[str] | None = None) -> dict:

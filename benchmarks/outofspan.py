@@ -66,11 +66,17 @@ def landmark_noise(rng: np.random.Generator, T: int, L: int, noise_px: float, mo
     rho = DETECTOR_NOISE_CORRELATION
     bias = rng.normal(0.0, noise_px, (L, 2))
     innovations = rng.normal(0.0, noise_px * np.sqrt(1.0 - rho * rho), (T, L, 2))
-    slow = np.empty((T, L, 2))
-    slow[0] = rng.normal(0.0, noise_px, (L, 2))          # stationary from the first frame
-    for j in range(1, T):
-        slow[j] = rho * slow[j - 1] + innovations[j]
-    return bias + slow
+    first = rng.normal(0.0, noise_px, (L, 2))            # stationary from the first frame
+    return bias + ar1(first, innovations)
+
+
+def ar1(first: np.ndarray, innovations: np.ndarray, rho: float = DETECTOR_NOISE_CORRELATION) -> np.ndarray:
+    """``(T, ...)`` the AR(1) series ``x_0 = first``, ``x_j = rho x_{j-1} + innovations_j`` (``innovations[0]`` unused)."""
+    out = np.empty_like(innovations)
+    out[0] = first
+    for j in range(1, len(out)):
+        out[j] = rho * out[j - 1] + innovations[j]
+    return out
 
 
 def landmark_take(vertices_head: np.ndarray, template, landmarks: int, noise_px: float, seed: int,

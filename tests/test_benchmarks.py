@@ -254,6 +254,25 @@ def test_detector_like_landmark_noise_has_its_bias_correlation_and_spread():
         landmark_noise(np.random.default_rng(0), 2, 2, 1.0, "gauss")
 
 
+def test_depth_rules_known_answers():
+    """The thickness rule on a sphere: a point 10 mm above a sphere of radius 50 that slides 20 mm sideways keeps
+    its distance on the sphere of radius 60, at depth sqrt(60^2 - 20^2) (the bone sampled every ~0.3 mm: within
+    0.1 mm). The one-ring areas add up to the mesh's area (trimesh)."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from benchmarks.bench_depth_rules import one_ring_area, thickness_depth
+
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=50.0)
+    samples, _ = trimesh.sample.sample_surface_even(sphere, 200_000, seed=0)
+    tree = cKDTree(samples)
+    rest = np.array([[0.0, 0.0, 60.0]])
+    d0 = tree.query(rest)[0]
+    z = thickness_depth(tree, rest, np.array([[20.0, 0.0, 60.0]]), d0)
+    assert z[0] == pytest.approx(np.sqrt(60.0 ** 2 - 20.0 ** 2), abs=0.1)
+    assert one_ring_area(sphere.vertices, sphere.faces).sum() == pytest.approx(sphere.area)
+
+
 @needs_ict
 def test_bench_depth_rules_no_change_and_rules_are_measured_on_the_same_vertices(tmp_path):
     """The thickness and volume rules against ICT's held-out expressions: pooled errors are finite and

@@ -407,24 +407,14 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
                 warm = None if prev_state is None else _warm_state(prev_state, *prev_range, win.start, J,
                                                                     win.head_R0, win.head_t0)
                 n_it = settings.iterations if warm is None else (settings.warm_iterations or settings.iterations)
-                # the first window of an adaptive fit is solved, its noise read, and solved again from there
-                for again in (False, True):
-                    res = fit_sequence(fit_actor, win.obs, _with_temporal_scale(settings, scale), win.head_R0,
-                                       win.head_t0, warm_start=warm, iterations=n_it)
-                    state = {k: v.detach().clone() for k, v in res.fit.state_dict().items()}
-                    tm["solve_s"] += time.perf_counter() - t0
-                    tm["iterations"] += len(res.losses)
-                    tm["lm_iterations"] += res.lm_iterations
-                    t0 = time.perf_counter()
-                    raw = _window_outputs(state, settings, fit_actor, out_actor, K, dist)
-                    tm["outputs_s"] += time.perf_counter() - t0
-                    t0 = time.perf_counter()
-                    if again or not adaptive or prev_state is not None:
-                        break
+                state, raw = _solve_window(win, fit_actor, out_actor, _with_temporal_scale(settings, scale), settings,
+                                           warm, n_it, K, dist, tm)
+                if adaptive and prev_state is None:   # the first window: its own noise sets its scale
                     first = _noise_scale(win.obs, raw, settings, neutral, None)
-                    if first == scale:
-                        break
-                    scale, warm = first, state
+                    if first != scale:
+                        scale = first
+                        state, raw = _solve_window(win, fit_actor, out_actor, _with_temporal_scale(settings, scale),
+                                                   settings, state, n_it, K, dist, tm)
                 tm["windows_solved"] += 1
                 if cache_dir is not None:
                     _save_cached(cache_dir, win.start, key, state, raw)
@@ -458,6 +448,21 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
         if win.last:
             return
         s = win.end - n_hold
+
+
+def _solve_window(win, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, solve_settings: FitSettings,
+                  settings: FitSettings, warm: dict | None, n_it: int, K, dist, tm: dict) -> tuple[dict, dict]:
+    """One window solved with ``solve_settings`` from ``warm``: ``(state, per-frame outputs)``; timings in ``tm``."""
+    t0 = time.perf_counter()
+    res = fit_sequence(fit_actor, win.obs, solve_settings, win.head_R0, win.head_t0, warm_start=warm, iterations=n_it)
+    state = {k: v.detach().clone() for k, v in res.fit.state_dict().items()}
+    tm["solve_s"] += time.perf_counter() - t0
+    tm["iterations"] += len(res.losses)
+    tm["lm_iterations"] += res.lm_iterations
+    t0 = time.perf_counter()
+    raw = _window_outputs(state, settings, fit_actor, out_actor, K, dist)
+    tm["outputs_s"] += time.perf_counter() - t0
+    return state, raw
 
 
 def _with_temporal_scale(settings: FitSettings, scale: float) -> FitSettings:
