@@ -61,6 +61,7 @@ from models.fit_state import (  # noqa: F401
     SequenceFit,
     compose_poses,
     pose_face,
+    pose_face_shared,
 )
 
 

@@ -7,7 +7,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from models.fit import (ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence, fitting_losses,
-                        pose_face)
+                        pose_face, pose_face_shared)
 
 K = torch.tensor([[800.0, 0, 320], [0, 800.0, 240], [0, 0, 1]], dtype=torch.float64)
 DIST = torch.tensor([-0.1, 0.02, 0.001, -0.001, 0.0], dtype=torch.float64)
@@ -432,6 +432,32 @@ def test_pose_face_with_coefficients_constant_over_points():
     torch.testing.assert_close(pose_face(actor, head_R, head_t, jaw_R, jaw_t, w),
                                pose_face(actor, head_R, head_t, jaw_R, jaw_t, w.expand(3, 40, 4).contiguous()))
 
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-9), (torch.float32, 2e-4)])
+def test_pose_face_shared_is_pose_face(dtype, tol):
+    """The meshes' one-product map against pose_face's skinning, blend and rigid steps, with a jaw that turns
+    about the actor's pivot and moves; in float32 within 2e-4 mm (head ~600 mm away: a few float32 ulps)."""
+    actor = toy_actor(P=60, E=4)
+    head_R, head_t, _ = truth(actor, J=5)
+    head_R = head_R @ torch.tensor(Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix())   # not symmetric
+    jaw_R = torch.stack([torch.tensor(Rotation.from_rotvec([0.2 * j, -0.05, 0.03 * j]).as_matrix()) for j in range(5)])
+    jaw_t = torch.linspace(-2.0, 3.0, 15, dtype=torch.float64).reshape(5, 3)
+    w = torch.randn(5, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    cast = ActorAtPoints(points=actor.points.to(dtype), neutral=actor.neutral.to(dtype),
+                         skin_weight=actor.skin_weight.to(dtype), expressions=actor.expressions.to(dtype),
+                         jaw_pivot=actor.jaw_pivot.to(dtype), center=actor.center.to(dtype), scale=actor.scale)
+    args = [a.to(dtype) for a in (head_R, head_t, jaw_R, jaw_t)]
+    ours = pose_face_shared(cast, *args, w.to(dtype))
+    assert ours.shape == (5, 60, 3) and ours.is_contiguous() and ours.dtype == dtype
+    torch.testing.assert_close(ours, pose_face(cast, *args, w.to(dtype)[:, None, :]), rtol=0, atol=tol)
+    # a point off the jaw (k = 0) follows the head alone: R_g (x + sum_i w_i E_i) + t_g
+    i = int(torch.argmin(actor.skin_weight))
+    cast.skin_weight[i] = 0
+    cast._features = None
+    alone = head_R @ (actor.neutral[i] + torch.einsum("je,ec->jc", w, actor.expressions[i])).unsqueeze(-1)
+    torch.testing.assert_close(pose_face_shared(cast, *args, w.to(dtype))[:, i].double(),
+                               alone.squeeze(-1) + head_t, rtol=0, atol=tol)
 
 def test_paper_preset_stays_the_papers():
     """The paper preset (the reference) has none of the default's additions: no LM base, no extra priors."""

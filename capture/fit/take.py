@@ -53,7 +53,7 @@ from capture.fit.records import FrameFit, WindowedFit, repeated_rows, stored_row
 from capture.io.atomic import atomic_path
 from capture.fit.init import PnPSettings, initial_head_poses, rigid_align
 from models.fit import (FIT3D_PRESETS, FIT_PRESETS, ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence,
-                        pose_face)
+                        pose_face, pose_face_shared)
 from models.fit_noise import face_px_per_mm, residual_noise_px, temporal_prior_scale
 
 __all__ = ["FrameFit", "fit_take", "fit_meshes", "resolve_settings", "resolved_settings_dict", "window_plan",
@@ -343,7 +343,7 @@ def _window_outputs(state: dict, settings: FitSettings, fit_actor: ActorAtPoints
     else:
         out["landmarks_fit"] = np.zeros((J, 0, 2))
     if net_zero:   # F_W at its zero start (2D default): the same coefficients at every vertex, all frames at once
-        v = pose_face(out_actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t, fit.coeff0[:, None, :])
+        v = pose_face_shared(out_actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t, fit.coeff0)
         out["vertices"] = np.ascontiguousarray(v.cpu().numpy(), np.float32)   # frame by frame in memory
         return out
     V = out_actor.points.shape[0]
