@@ -112,6 +112,46 @@ def test_geometric_check_removes_misidentified_corners():
     assert none is None and why.startswith("fails the geometric check")
 
 
+
+def test_geometric_check_keeps_a_partial_view_with_one_corner_off():
+    """A view where only 3 corners can be checked (8 corners of a board half out of the image, as the detector
+    leaves them at a strongly distorted corner): one of them off its neighbours' grid is removed and the view
+    kept (plain OpenCV keeps it too)."""
+    obj, img = synthetic_views(LENSES["strong"], n=1, seed=4, noise=0.05)
+    grid = [tuple(g) for g in np.round(obj[0][:, :2] / 30.0).astype(int)]
+    pattern = [(0, 0), (2, 0), (3, 0), (3, 1), (0, 2), (2, 2), (0, 3), (1, 3)]   # 3 of them have 5 neighbours
+    base = next(g for g in sorted(grid) if all((g[0] + dx, g[1] + dy) in grid for dx, dy in pattern + [(1, 0)]))
+    idx = np.array([grid.index((base[0] + dx, base[1] + dy)) for dx, dy in pattern])
+    det = Detection(img[0][idx].copy(), obj[0][idx], idx)
+    checked = np.flatnonzero(np.isfinite(corner_inconsistency(det, 30.0)))
+    assert len(checked) == 3                    # one bad corner is a third of them
+    square = np.linalg.norm(img[0][grid.index((base[0] + 1, base[1]))] - img[0][grid.index(base)])
+    one = det.image_points.copy()
+    one[checked[0]] += (0.5 * square, 0.0)      # half a square off
+    kept, reason = check_detection(Detection(one, det.object_points, det.ids), 30.0, min_corners=6)
+    assert reason is None and len(kept.ids) == 7 and det.ids[checked[0]] not in kept.ids
+
+
+
+def test_a_view_of_six_corners_with_one_doubtful_is_kept_and_a_misread_one_judged_by_the_solve():
+    """A view of exactly min_corners: removing its one corner that is off would leave too few, so the check keeps the
+    view whole (plain OpenCV would use it); a corner a whole square off (a mis-read marker) then makes the view an
+    outlier of the first solve, which drops it."""
+    obj, img = synthetic_views(LENSES["weak"], n=8, seed=2, noise=0.05)
+    grid = [tuple(g) for g in np.round(obj[0][:, :2] / 30.0).astype(int)]
+    base = next(g for g in sorted(grid) if all((g[0] + dx, g[1] + dy) in grid for dx in range(3) for dy in range(2)))
+    idx = np.array([grid.index((base[0] + dx, base[1] + dy)) for dy in range(2) for dx in range(3)])   # a 3 x 2 block
+    square = np.linalg.norm(img[0][idx[1]] - img[0][idx[0]])
+    for shift in (0.3, 1.0):
+        pts = img[0][idx].copy()
+        pts[0] += (shift * square, 0.0)
+        assert np.nanmax(corner_inconsistency(Detection(pts, obj[0][idx], idx), 30.0)) > 0.2     # flagged
+        det, reason = check_detection(Detection(pts, obj[0][idx], idx), 30.0, min_corners=6)
+        assert reason is None and len(det.ids) == 6
+    res = calibrate_views([det.object_points] + obj[1:], [det.image_points] + img[1:], [f"v{i}" for i in range(8)],
+                          SIZE, CalibrationOptions())
+    assert [v.label for v in res.rejected] == ["v0"]
+
 def test_edge_width_measures_gaussian_and_motion_blur():
     renderer = Renderer(SPEC)
     pose = operator_poses(renderer.board, renderer.K, SIZE, 1, seed=2, tilt_deg=(5, 10))[0]
