@@ -101,7 +101,6 @@ def pose_face(actor: ActorAtPoints, head_R: torch.Tensor, head_t: torch.Tensor, 
     return apply_rigid(skinned + disp, head_R, head_t)
 
 
-
 def pose_features(actor: ActorAtPoints) -> torch.Tensor:
     """``(8 + 3E, P)``: each point's ``[s0 (3), k s0 (3), k, E_1 .. E_E (3 each), 1]``, the inputs that
     :func:`pose_face_shared` maps linearly to the posed point (computed once per actor, kept on it)."""
@@ -124,8 +123,8 @@ def pose_face_shared(actor: ActorAtPoints, head_R: torch.Tensor, head_t: torch.T
     to float32 rounding, ``tests/test_fit.py``). Returns ``(J, P, 3)`` contiguous, mm.
     """
     J, E = coeffs.shape[0], actor.n_expressions
-    check_shapes({"coeffs": (coeffs, "J,E"), "head_R": (head_R, "J,3,3"), "head_t": (head_t, "J,3"),
-                  "jaw_R": (jaw_R, "J,3,3"), "jaw_t": (jaw_t, "J,3")})
+    check_shapes({"coeffs": (coeffs, "J,E"), "expressions": (actor.expressions, "P,E,3"), "head_R": (head_R, "J,3,3"),
+                  "head_t": (head_t, "J,3"), "jaw_R": (jaw_R, "J,3,3"), "jaw_t": (jaw_t, "J,3")})
     F = pose_features(actor)
     eye = torch.eye(3, dtype=head_R.dtype, device=head_R.device)
     jaw_offset = (eye - jaw_R) @ actor.jaw_pivot.to(head_R) + jaw_t                      # (J, 3)
@@ -133,6 +132,7 @@ def pose_face_shared(actor: ActorAtPoints, head_R: torch.Tensor, head_t: torch.T
                    torch.einsum("je,jik->jiek", coeffs.to(head_R), head_R).reshape(J, 3, 3 * E),
                    head_t.unsqueeze(-1)], 2)                                              # (J, 3, 8 + 3E)
     return (M.reshape(3 * J, -1).to(F) @ F).reshape(J, 3, -1).transpose(1, 2).contiguous()
+
 
 class GeluMLP(nn.Module):
     """Four linear layers with GELU between them; the last layer starts at zero output."""
