@@ -154,7 +154,11 @@ def test_bench_calib_quick():
     res = main(["--quick"])
     (row,) = res["rows"]
     assert row["condition"] == "h264" and row["plain_views"] > 0 and row["ours_views"] > 0
-    assert np.isfinite(row["ours_max_px"]) and np.isfinite(row["plain_max_px"])
+    assert res["supersample"] == 4          # the renders of the tables since 2026-12-05
+    # issue 15's guarantee on this case (weak lens, 6 views as an H.264 video; both 0.99 px in BENCHMARKS.md): never
+    # more than 0.5 px worse than plain OpenCV on the same frames, and a model near the truth (a convention slip or
+    # a wrong view set gives tens of px)
+    assert row["ours_max_px"] <= row["plain_max_px"] + 0.5 and row["ours_max_px"] < 3.0
 
 
 def test_bench_calib_models_quick():
