@@ -13,6 +13,7 @@ from capture.detector import Detector, LandmarkTrack, TrackOptions, detect_video
 from capture.detector import synthetic as S
 from capture.detector.finder import HaarFinder
 from capture.io.errors import CaptureError
+from capture.io.heap import populated
 from capture.io.video import VideoReader, open_video, video_identity
 
 GRID = GRID_CLIPS     # $CAPTURE_SHARED_ASSETS or ../shared/assets (benchmarks.assets)
@@ -35,11 +36,20 @@ def test_reader_reports_count_fps_size():
 
 
 @needs_grid
-def test_frames_decoded_into_a_pool_are_the_frames():
+def test_frames_decoded_into_a_pool_are_the_frames(monkeypatch):
     """Frames decoded into a FramePool's buffers equal the freshly allocated ones, and the buffers given
-    back are written into again (the pool then allocates nothing: every later frame is one of them)."""
+    back are written into again (the pool then allocates nothing: every later frame is one of them).
+    The pool's own buffers are mapped with their pages in place, one per frame out at once."""
+    import capture.io.video as video
     from capture.io.video import FramePool
 
+    made = []
+
+    def counted(shape, dtype=np.uint8):
+        made.append(shape)
+        return populated(shape, dtype)
+
+    monkeypatch.setattr(video, "populated", counted)
     with open_video(CLIPS[0]) as r:
         ref = {i: f.copy() for i, f in r.frames(range(20))}
     pool, given = FramePool(), []
@@ -53,8 +63,45 @@ def test_frames_decoded_into_a_pool_are_the_frames():
             given = list(group.values())
             pool.give(given)
             assert len(pool) == 5
+            assert made == [(288, 360, 3)] * 4          # frame 0 was decoded by the reader's check; 1-4 by the pool
     pool.give([np.zeros((4, 4, 3), np.uint8)[:, ::2]])   # not contiguous: never decoded into
     assert len(pool) == 5
+
+
+def test_a_capped_pool_waits_for_a_buffer_given_back_and_stops_waiting_on_stop():
+    import threading
+    import time
+
+    from capture.io.video import FramePool
+
+    stop = threading.Event()
+    pool = FramePool(cap=2, stop=stop)
+    a, b = pool.take((4, 4, 3)), pool.take((4, 4, 3))
+    assert pool.made == 2 and not np.shares_memory(a, b)
+    got = []
+    t = threading.Thread(target=lambda: got.append(pool.take((4, 4, 3))))
+    t.start()
+    time.sleep(0.3)
+    assert not got and t.is_alive()              # waits: two buffers made and none free
+    pool.give([a])
+    t.join(2)
+    assert got and got[0] is a and pool.made == 2 and pool.waited_s >= 0.25
+    t = threading.Thread(target=lambda: got.append(pool.take((4, 4, 3))))
+    t.start()
+    stop.set()                                   # a stopped run: the decoder is not left waiting
+    t.join(2)
+    assert not t.is_alive() and got[1] is None and pool.made == 2
+    assert FramePool().take() is None            # no shape, nothing free: the reader allocates
+
+
+def test_populated_buffers_are_zeroed_and_writable():
+    a = populated((7, 5, 3), np.uint8)
+    assert a.shape == (7, 5, 3) and a.dtype == np.uint8 and a.flags.writeable and a.flags.c_contiguous
+    assert not a.any()
+    a[...] = 9
+    b = populated((3, 4), np.float64)
+    b[:] = np.arange(12.0).reshape(3, 4)
+    assert a.sum() == 9 * 105 and b[2, 3] == 11.0 and b.sum() == 66.0
 
 
 def test_reader_errors(tmp_path):

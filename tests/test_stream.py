@@ -297,6 +297,24 @@ def test_detection_groups_ramp_up_and_down(lanes):
             assert lanes in sizes and sizes.count(lanes) >= n // lanes - 3
 
 
+def test_the_frame_pool_holds_the_largest_group_and_one_segment():
+    """The decoder fills the next group while the detector gives this one back frame by frame: the cap is the
+    largest group (or, for one segment decoded by pieces, the piece) plus a segment, never two groups; pieces
+    (1080p) keep their two pieces, so memory does not grow there."""
+    from capture.run.stream import DetectPlan, pool_frames
+
+    seg = {s: 32 for s in range(0, 320, 32)}
+    seg[288] = 20                                             # the take's last, short segment
+    plan = DetectPlan(sorted(seg), seg, {}, [[0, 32], [64, 96, 128], [160, 192, 224], [256], [288]], [], None, None)
+    assert pool_frames(plan) == 96 + 32
+    plan.piece = 10                                           # 1080p: single segments go by pieces of 10 frames
+    assert pool_frames(plan) == 96 + 32
+    plan.groups = [[0], [32], [64]]
+    assert pool_frames(plan) == 10 + 10
+    plan.groups = []                                          # everything cached
+    assert pool_frames(plan) == 1 + 1
+
+
 @pytest.mark.parametrize("sigma", [0.0, 1.0, 2.5])
 def test_window_poses_from_the_frames_around_them_equal_the_whole_takes(sigma):
     """A window's initial poses are computed from the raw poses around it (so that a window costs the same

@@ -18,9 +18,18 @@ threshold the free memory it held grew with the take (396 -> 487 MB over a 12,00
 trim gave back about 100 MB).
 
 No-op off glibc.
+
+:func:`populated` maps a large buffer with its pages already in place (``MAP_POPULATE``): one system call
+instead of a page fault per 4 KB at first touch. The frame pool's buffers come from it: in a streamed run
+those first touches came while the detect and export threads of the same process allocated and freed,
+and cost 2.9 s of system time for 131,000 faults (22 us each, against 3 us in a process alone).
 """
 
 from __future__ import annotations
+
+import mmap
+
+import numpy as np
 
 FRAMES_OFF_HEAP = (1 << 20, 64 << 20)     # (mmap, trim) bytes: the run's process
 COMPUTE = (32 << 20, 64 << 20)            # glibc's largest dynamic mmap threshold on 64-bit, twice it to trim
@@ -53,3 +62,16 @@ def release_free_heap() -> None:
         _libc().malloc_trim(0)
     except AttributeError:                    # no libc, or not glibc
         pass
+
+
+def populated(shape: tuple[int, ...], dtype=np.uint8) -> np.ndarray:
+    """A zeroed, writable, C-contiguous array of ``shape`` whose pages are mapped at once (``MAP_POPULATE``;
+    a plain ``np.zeros`` where the system has no such flag). Its memory is unmapped with the last array
+    that views it."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    flag = getattr(mmap, "MAP_POPULATE", 0)
+    if not flag or nbytes == 0:
+        return np.zeros(shape, dtype)
+    buf = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | flag)
+    return np.frombuffer(buf, dtype).reshape(shape)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import os
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -20,6 +21,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from capture.io.errors import CaptureError
+from capture.io.heap import populated
 
 
 @dataclass(frozen=True)
@@ -52,22 +54,42 @@ class FramePool:
     """Frame buffers to decode into, given back by whoever is done with them: a reader that decodes into
     them (:meth:`VideoReader.frames`' ``pool``) asks the system for no new pages per frame. Decoding into
     fresh arrays costs a page fault per 4 KB where large blocks are mapped and unmapped
-    (:mod:`capture.io.heap`): 1,200 frames of 1280x720 decoded in 10.1 s of CPU instead of 6.3. Thread-safe; it holds at most as many frames
-    as were out at once, and only arrays it is given back."""
+    (:mod:`capture.io.heap`): 1,200 frames of 1280x720 decoded in 10.1 s of CPU instead of 6.3. Thread-safe; it
+    holds at most as many frames as were out at once, and only arrays it is given back.
 
-    def __init__(self):
+    ``cap``: at most this many buffers are made; :meth:`take` then waits for one to be given back (a decoder
+    running ahead of its consumer, bounded), until ``stop`` is set. Give back each buffer once."""
+
+    def __init__(self, cap: int | None = None, stop: threading.Event | None = None):
         self._free: list[np.ndarray] = []
-        self._lock = threading.Lock()
+        self._cond = threading.Condition()
+        self.cap = None if cap is None else max(1, int(cap))
+        self.stop = stop
+        self.made = 0            # buffers made by take()
+        self.waited_s = 0.0      # time take() waited for a buffer
 
-    def take(self) -> np.ndarray | None:
-        """A free buffer (None: none yet; the reader allocates one)."""
-        with self._lock:
-            return self._free.pop() if self._free else None
+    def take(self, shape: tuple[int, ...] | None = None) -> np.ndarray | None:
+        """A free buffer; where there is none, a new uint8 one of ``shape`` with its pages mapped in one call
+        (:func:`capture.io.heap.populated`), or None without ``shape`` (the reader then allocates one).
+        With ``cap`` buffers made and none free, waits for one (None once ``stop`` is set)."""
+        with self._cond:
+            if not self._free and shape is not None and self.cap is not None and self.made >= self.cap:
+                t0 = time.perf_counter()
+                while not self._free and not (self.stop is not None and self.stop.is_set()):
+                    self._cond.wait(0.1)
+                self.waited_s += time.perf_counter() - t0
+            if self._free:
+                return self._free.pop()
+            if shape is None or (self.cap is not None and self.made >= self.cap):
+                return None
+            self.made += 1
+        return populated(shape)
 
     def give(self, frames: Iterable[np.ndarray]) -> None:
         """Return frames no one reads any more (their contents will be overwritten)."""
-        with self._lock:
+        with self._cond:
             self._free.extend(f for f in frames if isinstance(f, np.ndarray) and f.flags.c_contiguous)
+            self._cond.notify_all()
 
     def __len__(self) -> int:
         return len(self._free)
@@ -101,6 +123,8 @@ class VideoReader:
         self._cap = cap
         self._next = 1        # index of the frame the next read() returns
         self._pending = first  # frame 0, already decoded
+        # what read() decodes into without reallocating (a pool's new buffers); None for gray or BGRA streams
+        self.frame_shape = first.shape if first.ndim == 3 and first.shape[2] == 3 else None
 
     def __enter__(self) -> "VideoReader":
         return self
@@ -159,7 +183,7 @@ class VideoReader:
                     if not self._cap.grab():
                         return
                     self._next += 1
-                ok, frame = self._cap.read(None if pool is None else pool.take())
+                ok, frame = self._cap.read(None if pool is None else pool.take(self.frame_shape))
                 if not ok or frame is None:
                     return
                 self._next += 1

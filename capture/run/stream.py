@@ -27,8 +27,10 @@ back-pressure); the decoder works at most one group of detection
 segments (:data:`DECODE_BUDGET_BYTES`) ahead of the detector, and where frames are too large for two
 segments in that budget (1080p), one segment is decoded and detected a piece of
 :data:`DECODE_PIECE_BYTES` at a time, the track carried from piece to piece. Frames are
-decoded into buffers that the detector gives back (:class:`capture.io.video.FramePool`; other large
-blocks are allocated off the heap, :mod:`capture.io.heap`). What a run keeps of every frame is small:
+decoded into buffers that the detector gives back frame by frame as every lane moves past them
+(:class:`capture.io.video.FramePool`, at most :func:`pool_frames`: the largest group and one segment, so the
+decoder fills the next group with this group's frames; the buffers' pages are mapped in one call,
+:func:`capture.io.heap.populated`; other large blocks are allocated off the heap, :mod:`capture.io.heap`). What a run keeps of every frame is small:
 the track's per-landmark arrays and the NPZ writers' rows are spilled to unnamed files a block at a time
 (:class:`capture.io.rows.SpilledRows`; the track is mapped back read-only at the end), each frame's
 ``FrameLandmarks`` is let go once exported, and what stays in memory is a few numbers a frame (frame
@@ -258,6 +260,18 @@ def decode_pieces(indices: list[int], piece: int) -> list[list[int]]:
     return [indices[k:k + piece] for k in range(0, len(indices), piece)] or [indices]
 
 
+def pool_frames(plan: DetectPlan) -> int:
+    """Frame buffers a streamed run decodes into (:class:`capture.io.video.FramePool`'s ``cap``): the largest
+    group (or piece) the detector holds, plus one segment (at most as many frames again) that the decoder may
+    fill ahead while the detector gives the group back frame by frame. The decoder, several times faster than
+    the detector, then has the next group decoded before the detector needs it; 1080p pieces keep their two
+    pieces."""
+    seg = max(plan.seg_len.values(), default=1)
+    largest = max((min(sum(plan.seg_len[s] for s in g), plan.piece if len(g) == 1 else 1 << 30)
+                   for g in plan.groups), default=1)
+    return max(1, largest + min(seg, largest))
+
+
 def _frame_weights(points: np.ndarray, confidence: np.ndarray | None) -> np.ndarray:
     """One frame's row of :func:`capture.run.stages.landmark_weights`."""
     w = np.ones(points.shape[0]) if confidence is None else np.asarray(confidence, np.float64)
@@ -330,22 +344,28 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     stage_dir = out / "fit" / f"stream-{digest(stream_key)[:16]}"
     stage_dir.mkdir(parents=True, exist_ok=True)
 
-    pool = FramePool()               # decoded frames' buffers, given back after detection: no page faults per frame
+    # decoded frames' buffers, given back frame by frame as detection moves past them (release): no page
+    # faults per frame, and one group and a segment of frames in all, not two groups (177 MB less at 720p)
+    pool = FramePool(cap=pool_frames(plan), stop=pipe_line.stop)
     want_images = any(EXPORTERS[f].needs_image for f in formats)
     # the report's thumbnails of the worst frames: where no export reads the video's frames, detection keeps
     # the face of every frame it detects, small, until the frame is exported (and its error known)
     face_crops: dict[int, FaceCrop] = {}
+    released: dict[int, int] = {}        # id(lane) -> its frames given back so far (release)
 
-    def keep_faces(lanes) -> None:
-        if want_images:
-            return
+    def release(lanes) -> None:
+        """``Detector.run_lanes``' ``on_step``: the frames every lane has moved past go back to the pool (the
+        face of each kept first for the report, where no export reads the video's frames)."""
         for lane in lanes:
-            image = dict(zip(lane.indices, lane.frames))
-            for r in lane.results:
-                if r.frame_index in wanted and r.face_found and r.frame_index in image:
-                    crop = FaceCrop.of(image[r.frame_index], r.points)
+            for k in range(released.get(id(lane), 0), min(lane.pos, len(lane.results))):
+                image, r = lane.frames[k], lane.results[k]
+                if not want_images and r.frame_index in wanted and r.face_found:
+                    crop = FaceCrop.of(image, r.points)
                     if crop is not None:       # no box (the report then reads that frame from the video)
                         face_crops[int(r.frame_index)] = crop
+                lane.frames[k] = None
+                pool.give([image])
+                released[id(lane)] = k + 1
 
     def decode():
         with VideoReader(cfg.video) as reader:
@@ -358,9 +378,9 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                         if pipe_line.stop.is_set():
                             raise _Stopped
                         time.sleep(0.005)
-                    t0 = time.perf_counter()
-                    buf = dict(reader.frames(part, pool))
-                    clocks["decode"].busy += time.perf_counter() - t0
+                    t0, waited = time.perf_counter(), pool.waited_s
+                    buf = dict(reader.frames(part, pool))       # waits for buffers the detector gives back
+                    clocks["decode"].busy += time.perf_counter() - t0 - (pool.waited_s - waited)
                     decoded.put((group, buf, k == len(pieces) - 1))
         decoded.put(_END)
 
@@ -381,13 +401,13 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                         for g, state in zip(group, states):
                             ids = [i for i in range(g, g + plan.seg_len[g]) if i in buf]
                             lanes.append(Lane(ids, [buf[i] for i in ids], state))
-                        det.run_lanes(lanes, q, batch_size=len(group))
-                        keep_faces(lanes)
-                        pool.give(buf.values())     # the detector keeps no frame: decoded into again
-                        del buf
+                        del buf                     # the lanes hold the frames until release() gives them back
+                        released.clear()
+                        det.run_lanes(lanes, q, batch_size=len(group), on_step=release)
+                        release(lanes)              # every lane is done: all its frames were given back
                         for lane, res in zip(lanes, results):
                             res.extend(lane.results)
-                            lane.frames = []        # let go of the decoded frames before waiting for the next piece
+                            lane.frames = []
                         clocks["detect"].busy += time.perf_counter() - t0
                         if last:
                             break
@@ -577,7 +597,9 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     c = clocks
     log = [
         {"stage": "detect", "status": "skipped" if stats["detected"] == 0 else "done", "seconds": c["detect"].busy,
-         "finished_after_s": c["detect"].finished, "decode_seconds": c["decode"].busy, "frames": len(track),
+         "finished_after_s": c["detect"].finished, "decode_seconds": c["decode"].busy,
+         "waited_for_frames_s": decoded.wait_s, "decode_waited_for_buffers_s": pool.waited_s,
+         "frame_buffers": pool.made, "frames": len(track),
          "frames_detected": stats["detected"], "frames_cached": stats["cached"],
          "faces_found": int(track.face_found.sum()), "streamed": True},
         {"stage": "fit", "status": "done", "seconds": c["fit"].busy, "finished_after_s": c["fit"].finished,
