@@ -229,7 +229,7 @@ def retargeted_fits(source: SourceRun, actor_points, part: str) -> Iterator:
 
     verts = replay_vertices(source, actor_points, part)
     for ff in iter_fits(source.fit_dir):
-        yield dataclasses.replace(ff, vertices=next(verts), landmarks_fit=np.zeros((0, 2)),
+        yield dataclasses.replace(ff, vertices=next(verts), mesh_map=None, landmarks_fit=np.zeros((0, 2)),
                                   reprojection_rms_px=float("nan"), error3d_mm=float("nan"))
 
 

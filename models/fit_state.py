@@ -2,7 +2,9 @@
 
 * :class:`ActorAtPoints`: the frozen actor evaluated once at the fit points;
 * :func:`pose_face`: ``s* = T_g(LBS(s0, T_b, k) + sum_i w_i E_i)`` for J frames; :func:`pose_face_shared`, the
-  same map for coefficients shared by every point, as one matrix product (the meshes a fit writes);
+  same map for coefficients shared by every point, as one matrix product; :func:`shared_pose_maps` and
+  :func:`models.mesh_map.map_vertices`, that product's per-frame matrix and a frame's mesh from it (the meshes a fit
+  writes);
 * :class:`SequenceFit`: frame codes, ``F_T``, ``F_W`` and the per-frame base (the fitter owns every
   per-frame parameter); :class:`FramePose`, :func:`compose_poses`;
 * :class:`Observations`: what a window is fitted to.
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -111,27 +114,42 @@ def pose_features(actor: ActorAtPoints) -> torch.Tensor:
     return actor._features
 
 
-def pose_face_shared(actor: ActorAtPoints, head_R: torch.Tensor, head_t: torch.Tensor, jaw_R: torch.Tensor,
+def shared_pose_maps(actor: ActorAtPoints, head_R: torch.Tensor, head_t: torch.Tensor, jaw_R: torch.Tensor,
                      jaw_t: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
-    """:func:`pose_face` for coefficients ``coeffs (J, E)`` shared by every point, as one matrix product.
+    """``(J, 3, 8 + 3E)``, in ``head_R``'s dtype: for coefficients ``coeffs (J, E)`` shared by every point, the
+    matrix ``M_j`` that maps each point's :func:`pose_features` ``f`` to its posed position, ``M_j f``.
 
-    With the jaw ``T_b(x) = R_b (x - p) + p + t_b`` the map is linear in each point's
-    :func:`pose_features` ``f = [x, k x, k, E_1 .. E_E, 1]``:
-    ``s* = R_g x + R_g (R_b - I) k x + k R_g ((I - R_b) p + t_b) + sum_i w_i R_g E_i + t_g``, so all J frames are
-    the product of a ``(3J, 8 + 3E)`` matrix with the ``(8 + 3E, P)`` features: ~2.5 ms for 30 frames of 9,409
-    points on one core where :func:`pose_face`'s skinning, blend and rigid steps take ~22 ms (the same results
-    to float32 rounding, ``tests/test_fit.py``). Returns ``(J, P, 3)`` contiguous, mm.
+    With the jaw ``T_b(x) = R_b (x - p) + p + t_b``:
+    ``s* = R_g x + R_g (R_b - I) k x + k R_g ((I - R_b) p + t_b) + sum_i w_i R_g E_i + t_g``. A frame's whole mesh
+    is then ``M_j`` (3 x (8 + 3E) numbers: 240 at E = 24) and the actor's features: :func:`pose_face_shared`, and
+    :func:`models.mesh_map.map_vertices` where the features are a numpy array (the run's process, a stored fit).
     """
     J, E = coeffs.shape[0], actor.n_expressions
     check_shapes({"coeffs": (coeffs, "J,E"), "expressions": (actor.expressions, "P,E,3"), "head_R": (head_R, "J,3,3"),
                   "head_t": (head_t, "J,3"), "jaw_R": (jaw_R, "J,3,3"), "jaw_t": (jaw_t, "J,3")})
-    F = pose_features(actor)
     eye = torch.eye(3, dtype=head_R.dtype, device=head_R.device)
     jaw_offset = (eye - jaw_R) @ actor.jaw_pivot.to(head_R) + jaw_t                      # (J, 3)
-    M = torch.cat([head_R, head_R @ (jaw_R - eye), (head_R @ jaw_offset.unsqueeze(-1)),
-                   torch.einsum("je,jik->jiek", coeffs.to(head_R), head_R).reshape(J, 3, 3 * E),
-                   head_t.unsqueeze(-1)], 2)                                              # (J, 3, 8 + 3E)
+    return torch.cat([head_R, head_R @ (jaw_R - eye), (head_R @ jaw_offset.unsqueeze(-1)),
+                      torch.einsum("je,jik->jiek", coeffs.to(head_R), head_R).reshape(J, 3, 3 * E),
+                      head_t.unsqueeze(-1)], 2)                                           # (J, 3, 8 + 3E)
+
+
+def pose_face_shared(actor: ActorAtPoints, head_R: torch.Tensor, head_t: torch.Tensor, jaw_R: torch.Tensor,
+                     jaw_t: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
+    """:func:`pose_face` for coefficients ``coeffs (J, E)`` shared by every point, as one matrix product
+    (:func:`shared_pose_maps` with the features): ~2.5 ms for 30 frames of 9,409 points on one core where
+    :func:`pose_face`'s skinning, blend and rigid steps take ~22 ms (the same results to float32 rounding,
+    ``tests/test_fit.py``). Returns ``(J, P, 3)`` contiguous, mm.
+    """
+    J = coeffs.shape[0]
+    F = pose_features(actor)
+    M = shared_pose_maps(actor, head_R, head_t, jaw_R, jaw_t, coeffs)
     return (M.reshape(3 * J, -1).to(F) @ F).reshape(J, 3, -1).transpose(1, 2).contiguous()
+
+
+def mesh_basis(actor: ActorAtPoints) -> np.ndarray:
+    """``(8 + 3E, P)`` float32 numpy: :func:`pose_features`, the basis that :func:`models.mesh_map.map_vertices` maps."""
+    return np.ascontiguousarray(pose_features(actor).detach().cpu().numpy(), np.float32)
 
 
 class GeluMLP(nn.Module):

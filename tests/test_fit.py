@@ -2,12 +2,15 @@
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
 from models.fit import (ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence, fitting_losses,
                         pose_face, pose_face_shared)
+from models.fit_state import mesh_basis, shared_pose_maps
+from models.mesh_map import map_vertices
 
 K = torch.tensor([[800.0, 0, 320], [0, 800.0, 240], [0, 0, 1]], dtype=torch.float64)
 DIST = torch.tensor([-0.1, 0.02, 0.001, -0.001, 0.0], dtype=torch.float64)
@@ -451,6 +454,15 @@ def test_pose_face_shared_is_pose_face(dtype, tol):
     ours = pose_face_shared(cast, *args, w.to(dtype))
     assert ours.shape == (5, 60, 3) and ours.is_contiguous() and ours.dtype == dtype
     torch.testing.assert_close(ours, pose_face(cast, *args, w.to(dtype)[:, None, :]), rtol=0, atol=tol)
+    # the same meshes from each frame's map of the features, in numpy (what the fit hands over and stores)
+    maps = shared_pose_maps(cast, *args, w.to(dtype))
+    assert maps.shape == (5, 3, 8 + 3 * 4) and maps.dtype == dtype
+    basis = mesh_basis(cast)
+    assert basis.dtype == np.float32 and basis.shape == (8 + 3 * 4, 60)
+    for j in range(5):
+        v = map_vertices(maps[j].numpy().astype(np.float32), basis)
+        assert v.dtype == np.float32 and v.shape == (60, 3) and v.flags.c_contiguous
+        np.testing.assert_allclose(v, ours[j].double().numpy(), rtol=0, atol=2e-4)
     # a point off the jaw (k = 0) follows the head alone: R_g (x + sum_i w_i E_i) + t_g
     i = int(torch.argmin(actor.skin_weight))
     cast.skin_weight[i] = 0

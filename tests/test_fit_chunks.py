@@ -4,6 +4,7 @@ the chunks that hold some frames (the report's worst-frame thumbnails). Against 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 
@@ -140,3 +141,59 @@ def test_fields_written_frame_by_frame_read_back_as_stacked(tmp_path, monkeypatc
                 assert np.asarray(x).dtype == np.asarray(y).dtype, name
                 np.testing.assert_array_equal(x, y)
         assert a.status == b.status and a.reprojection_rms_px == b.reprojection_rms_px
+
+
+def test_meshes_stored_as_maps_come_back_to_the_bit_and_others_keep_their_vertices(tmp_path):
+    """Fits whose vertices are their mesh map of the actor's features are stored without the vertices (the
+    basis once beside the chunks) and read back equal to the bit, whole or by fields; a chunk with one fit
+    whose vertices the map does not give (a blend of two fits, a retargeted mesh) keeps every vertex; a
+    chunk that needs a basis that is gone is refused with a one-line error."""
+    import zipfile
+
+    import pytest
+
+    from capture.io.errors import CaptureError
+    from capture.run.store import MESH_BASIS, load_frame_fits
+    from models.mesh_map import map_vertices
+
+    rng = np.random.default_rng(3)
+    K, V = 20, 50
+    basis = rng.normal(size=(K, V)).astype(np.float32)
+    maps = rng.normal(size=(6, 3, K)).astype(np.float32)
+    fits = [FrameFit(frame=i, head_R=np.eye(3), head_t=np.zeros(3), jaw_R=np.eye(3), jaw_t=np.zeros(3),
+                     code=np.zeros(2), coefficients_landmarks=np.zeros((5, 3)), vertices=map_vertices(m, basis),
+                     landmarks_fit=np.zeros((5, 2)), reprojection_rms_px=0.5, status="fitted", mesh_map=m)
+            for i, m in enumerate(maps)]
+    assert fits[0].vertices.shape == (V, 3) and fits[0].vertices.dtype == np.float32
+    np.testing.assert_allclose(fits[2].vertices, (maps[2].astype(np.float64) @ basis).T, rtol=1e-5, atol=1e-5)
+    a = tmp_path / "a"
+    save_frame_fits(a / "frames_000000.npz", fits[:3], basis)
+    save_frame_fits(a / "frames_000003.npz", fits[3:], basis)
+    assert (a / MESH_BASIS).is_file()
+    assert "vertices.npy" not in zipfile.ZipFile(a / "frames_000000.npz").namelist()
+    got = load_frame_fits(a / "frames_000000.npz", FrameFit) + load_frame_fits(a / "frames_000003.npz", FrameFit)
+    only = load_frame_fits(a / "frames_000003.npz", FrameFit, ("vertices",))
+    for f, g in zip(fits, got):
+        np.testing.assert_array_equal(g.vertices, f.vertices)
+        np.testing.assert_array_equal(g.mesh_map, f.mesh_map)
+    for f, g in zip(fits[3:], only):
+        np.testing.assert_array_equal(g.vertices, f.vertices)
+        assert g.mesh_map is None and g.head_t is None               # only what was asked for
+    # a blended frame: its vertices are not its map's (as a stitched overlap): the chunk keeps them
+    blended = list(fits[:3])
+    blended[1] = replace(blended[1], vertices=(0.5 * fits[0].vertices + 0.5 * fits[1].vertices))
+    save_frame_fits(tmp_path / "b" / "frames_000000.npz", blended, basis)
+    assert "vertices.npy" in zipfile.ZipFile(tmp_path / "b" / "frames_000000.npz").namelist()
+    for f, g in zip(blended, load_frame_fits(tmp_path / "b" / "frames_000000.npz", FrameFit)):
+        np.testing.assert_array_equal(g.vertices, f.vertices)
+    # another actor's basis into the same folder is a bug, not a silent mix
+    other = basis + 1
+    assert not (a / "frames_000006.npz").exists()
+    save_frame_fits(a / "frames_000006.npz", fits[:1], other)         # not its map of that basis: kept whole
+    assert "vertices.npy" in zipfile.ZipFile(a / "frames_000006.npz").namelist()
+    with pytest.raises(ValueError, match="another actor"):
+        save_frame_fits(a / "frames_000007.npz", [replace(fits[0], vertices=map_vertices(maps[0], other))], other)
+    (a / MESH_BASIS).unlink()
+    with pytest.raises(CaptureError) as e:
+        load_frame_fits(a / "frames_000000.npz", FrameFit)
+    assert MESH_BASIS in str(e.value) and "\n" not in str(e.value)

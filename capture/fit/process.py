@@ -21,7 +21,9 @@ Protocol::
                       END (or ABORT)
     child -> parent   on the ready pipe, the PnP model points (the actor at the landmarks), then BUILT
                       once the networks are evaluated at every template vertex; on its own pipe,
-                      ("fit", FrameFit, rows read so far) per frame, ("read", rows read so far) when it
+                      ("fit", FrameFit, rows read so far) per frame (without vertices where it has a mesh_map:
+                      the parent makes them from ("basis", the actor's features (K, V) float32), sent once
+                      before the first such fit), ("read", rows read so far) when it
                       waits for rows, then ("end", timings, the actor's FaceRig, which the parent
                       adopts), ("error", exception) or ("aborted",)
 
@@ -46,6 +48,8 @@ import threading
 import time
 import traceback
 from typing import Iterable, Iterator
+
+from models.mesh_map import map_vertices
 
 END = "end"
 ABORT = "abort"
@@ -81,6 +85,8 @@ def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_po
     import torch
 
     from capture.fit.stream import fit_take_stream, pnp_model_points
+    from capture.fit.take import query_template
+    from models.fit_state import mesh_basis
 
     torch.set_num_threads(max(1, int(threads)))      # once, for this stage
 
@@ -126,10 +132,16 @@ def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_po
             actor.at_template()
         ready_conn.send(BUILT)
         busy, t_last = 0.0, time.perf_counter()
+        basis_sent = False
         for k, ff in enumerate(fit_take_stream(actor, rows(), template_points, camera, how, causal=causal,
-                                               timings=timings)):
+                                               timings=timings, vertices=False)):
             now = time.perf_counter()
             busy += now - t_last
+            if ff.mesh_map is not None and not basis_sent:
+                # fits go without their vertices where they are a map of the actor's features (FrameFit.mesh_map):
+                # the parent makes them from this basis (results), under 1 KB a frame on the pipe instead of 113 KB
+                out_conn.send(("basis", mesh_basis(query_template(actor, how.device))))
+                basis_sent = True
             out_conn.send(("fit", ff, read[0]))
             reported[0] = read[0]
             if not in_thread and k % TRIM_EVERY_FRAMES == TRIM_EVERY_FRAMES - 1:
@@ -208,6 +220,7 @@ class FitWorker:
         self._ready_lock = threading.Lock()
         self._model_points = None
         self._built = False
+        self._basis = None      # the actor's features (models.fit_state.mesh_basis), sent before the first fit
         self._pnp_s = 0.0
         self._send_lock = threading.Lock()
         self._sent_end = False
@@ -320,7 +333,12 @@ class FitWorker:
                 self._heard(msg[1])
             elif msg[0] == "fit":
                 self._heard(msg[2])
-                yield msg[1], msg[2]
+                ff = msg[1]
+                if ff.vertices is None and ff.mesh_map is not None:
+                    ff.vertices = map_vertices(ff.mesh_map, self._basis)
+                yield ff, msg[2]
+            elif msg[0] == "basis":
+                self._basis = msg[1]
             elif msg[0] == "end":
                 self.timings = {**msg[1], "pnp_s": self._pnp_s}
                 if msg[2] is not None and self.in_process:   # the parent's actor need not evaluate its networks
@@ -330,6 +348,12 @@ class FitWorker:
                 raise FitStopped("the fit was stopped (its rows ended without the end of the take)")
             else:
                 raise msg[1]
+
+    @property
+    def basis(self):
+        """The actor's features that the fits' mesh maps map (``(K, V)`` float32), once the fit sent them
+        (before its first fit with a map); None before that or for fits without maps."""
+        return self._basis
 
     def wait_ready(self) -> None:
         """Wait until the fit has built the actor's networks and evaluated them at the template (``capture

@@ -80,6 +80,10 @@ class FrameFit:
     error3d_mm: float = float("nan")   # fit3d: mean distance to the given mesh over all vertices
     window_start: int = 0              # first frame of the (later) window this frame came from
     coefficients_base: np.ndarray | None = None  # (E,) the per-frame base: w_j(c) = base + F_W(z_j, c)
+    # (3, 8 + 3E) float32 where every vertex has the same coefficients (F_W zero): vertices = its map of the
+    # actor's features (models.fit_state.map_vertices); a fit sent between processes may come without its
+    # vertices, which the receiver makes from this (capture.fit.process.FitWorker.results)
+    mesh_map: np.ndarray | None = None
 
     def __getstate__(self) -> dict:
         """Pickled with ``coefficients_landmarks`` as one row when it is :func:`repeated_rows` (90 KB less per

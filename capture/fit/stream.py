@@ -194,7 +194,7 @@ def pnp_model_points(actor, template_points: np.ndarray, device="cpu") -> np.nda
 def fit_take_stream(actor, frames: Iterable, template_points: np.ndarray, camera: Camera,
                     how: WindowedFit = WindowedFit(), pnp: PnPSettings | None = None, causal: bool = False,
                     progress: Callable[[int, int | None], None] | None = None,
-                    timings: dict | None = None) -> Iterator[FrameFit]:
+                    timings: dict | None = None, vertices: bool = True) -> Iterator[FrameFit]:
     """Fit ``actor`` to landmarks arriving frame by frame; yields :class:`FrameFit` in frame order.
 
     Args:
@@ -206,6 +206,8 @@ def fit_take_stream(actor, frames: Iterable, template_points: np.ndarray, camera
         causal: poses from past frames only (see the module docstring); False gives ``fit_take``'s
             results exactly.
         timings: receives ``query_s``, ``pnp_s``, ``wait_s`` (blocked on input) and the window figures.
+        vertices: False: fits whose mesh is a map of the actor's features (``FrameFit.mesh_map``) come
+            without vertices (the fit process: :class:`capture.fit.process.FitWorker` makes them).
 
     ``FrameFit.frame`` counts from 0 (the position in the stream).
     """
@@ -234,7 +236,7 @@ def fit_take_stream(actor, frames: Iterable, template_points: np.ndarray, camera
     def run() -> Iterator[FrameFit]:
         try:
             yield from _run_windows(src, fit_actor, out_actor, s, window, overlap, cache, progress, how.threads, base,
-                                    None, K, dist, tm)
+                                    None, K, dist, tm, vertices=vertices)
         finally:
             tm["pnp_s"] = src.chain.seconds
             tm["wait_s"] = src.wait_s

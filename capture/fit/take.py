@@ -53,7 +53,9 @@ from capture.fit.records import FrameFit, WindowedFit, repeated_rows, stored_row
 from capture.io.atomic import atomic_path
 from capture.fit.init import PnPSettings, initial_head_poses, rigid_align
 from models.fit import (FIT3D_PRESETS, FIT_PRESETS, ActorAtPoints, FitSettings, Observations, SequenceFit, fit_sequence,
-                        pose_face, pose_face_shared)
+                        pose_face)
+from models.fit_state import mesh_basis, shared_pose_maps
+from models.mesh_map import map_vertices
 from models.fit_noise import face_px_per_mm, residual_noise_px, temporal_prior_scale
 
 __all__ = ["FrameFit", "fit_take", "fit_meshes", "resolve_settings", "resolved_settings_dict", "window_plan",
@@ -342,9 +344,11 @@ def _window_outputs(state: dict, settings: FitSettings, fit_actor: ActorAtPoints
         out["landmarks_fit"] = project_points(lm3, K, dist).cpu().double().numpy()
     else:
         out["landmarks_fit"] = np.zeros((J, 0, 2))
-    if net_zero:   # F_W at its zero start (2D default): the same coefficients at every vertex, all frames at once
-        v = pose_face_shared(out_actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t, fit.coeff0)
-        out["vertices"] = np.ascontiguousarray(v.cpu().numpy(), np.float32)   # frame by frame in memory
+    if net_zero:   # F_W at its zero start (2D default): the same coefficients at every vertex; each frame's mesh
+        # is its map of the actor's features (models.fit_state.shared_pose_maps), made into vertices as it is
+        # emitted (blended over overlaps like every output: the mesh is linear in the map)
+        out["mesh_map"] = shared_pose_maps(out_actor, pose.head_R, pose.head_t, pose.jaw_R, pose.jaw_t,
+                                           fit.coeff0).cpu().double().numpy()
         return out
     V = out_actor.points.shape[0]
     verts = np.empty((J, V, 3), np.float32)
@@ -368,6 +372,15 @@ def _blend(a: dict, b: dict, i: int, alpha: float) -> dict:
     return out
 
 
+def _with_vertices(f: dict, basis: np.ndarray) -> dict:
+    """A frame's raw outputs with its mesh as vertices (float64, as :func:`_window_outputs` gives them)."""
+    if "mesh_map" not in f:
+        return f
+    f = dict(f)
+    f["vertices"] = map_vertices(f.pop("mesh_map").astype(np.float32), basis).astype(np.float64)
+    return f
+
+
 def _frame(raw: dict, i: int) -> dict:
     return {k: v[i] for k, v in raw.items()}
 
@@ -379,8 +392,14 @@ def _smoothstep(x: float) -> float:
 def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, settings: FitSettings, window: int,
                  overlap: int, cache_dir: Path | None, progress: Callable[[int, int | None], None] | None,
                  threads: int | None, base_key: str, total: int | None, K, dist,
-                 timings: dict | None = None) -> Iterator[FrameFit]:
+                 timings: dict | None = None, vertices: bool = True) -> Iterator[FrameFit]:
+    """The windows of ``source`` solved, blended over their overlaps and emitted frame by frame.
+
+    ``vertices=False``: a frame whose mesh is a map of the actor's features (``FrameFit.mesh_map``) comes
+    without its vertices, which the receiver makes with :func:`models.mesh_map.map_vertices` (the fit
+    process sends under 1 KB a frame instead of 113 KB)."""
     tm = timings if timings is not None else {}
+    basis = None
     for k in ("solve_s", "outputs_s", "iterations", "lm_iterations", "windows_solved", "windows_cached"):
         tm.setdefault(k, 0)
     if cache_dir is not None:
@@ -430,13 +449,25 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
             if i < n_held:
                 hj, hf = held[i]
                 assert hj == j
+                if ("mesh_map" in hf) != ("mesh_map" in f):    # F_W zero in one window only: blend the meshes
+                    if basis is None:
+                        basis = mesh_basis(out_actor)
+                    hf, f = _with_vertices(hf, basis), _with_vertices(f, basis)
                 f = _blend(hf, f, i, _smoothstep((i + 1) / (n_held + 1)))
-            rms, err3d = source.frame_metrics(j, f["vertices"], f["landmarks_fit"])
+            if "mesh_map" in f:
+                mesh_map = f["mesh_map"].astype(np.float32)
+                if basis is None:
+                    basis = mesh_basis(out_actor)
+                verts = map_vertices(mesh_map, basis) if vertices else None
+            else:
+                mesh_map, verts = None, f["vertices"].astype(np.float32)
+            rms, err3d = source.frame_metrics(j, verts, f["landmarks_fit"])
             yield FrameFit(frame=j, head_R=f["head_R"], head_t=f["head_t"], jaw_R=f["jaw_R"], jaw_t=f["jaw_t"],
                            code=f["code"], coefficients_landmarks=repeated_rows(f["coefficients_landmarks"]),
-                           vertices=f["vertices"].astype(np.float32), landmarks_fit=f["landmarks_fit"],
+                           vertices=verts, landmarks_fit=f["landmarks_fit"],
                            reprojection_rms_px=rms, status="bridged" if win.bridged[i] else "fitted",
-                           error3d_mm=err3d, window_start=win.start, coefficients_base=f["coefficients_base"])
+                           error3d_mm=err3d, window_start=win.start, coefficients_base=f["coefficients_base"],
+                           mesh_map=mesh_map)
             done += 1
             if progress is not None:
                 progress(done, total)

@@ -92,7 +92,8 @@ def fit_key(inputs, track) -> dict:
            "embedding_sha256": inputs.embedding_sha256,
            "camera": {"K": cam.K.tolist(), "dist": cam.dist.tolist(), "image_size": list(cam.image_size)},
            "landmarks_sha256": array_digest(track.frame_index, track.points, landmark_weight_blocks(track),
-                                            track.face_found)}
+                                            track.face_found),
+           "stored": "mesh maps"}    # meshes stored as maps of the actor's features where they are (store.MESH_BASIS)
     if getattr(cfg, "segments", None):   # stitched from segments by capture batch: another fit
         key["segments"] = [[int(s), int(e)] for s, e in cfg.segments]
     return key
@@ -146,12 +147,14 @@ def fits_at(fit_dir: Path, frames: Iterable[int], fields: Iterable[str] | None =
 
 def run_fit_cached(fit_dir: Path, key: dict, total: int, start_fit: Callable[[Path], Iterator[Any]],
                    label: str, progress: bool, log: list | None, overwrite: bool = False,
-                   frame_map: np.ndarray | None = None) -> Path:
+                   frame_map: np.ndarray | None = None, basis: Callable[[], np.ndarray] | None = None) -> Path:
     """Shared by run and fit3d: skip when ``fit_dir/done.json`` matches ``key``, else fit (resumable).
 
     The fit streams: every :data:`FIT_CHUNK` frames are stored as ``frames_<first>.npz``; ``done.json``
     (key, chunks, frames) is written last. ``frame_map[j]`` is the video frame of take position ``j``
     (``FrameFit.frame`` counts from the first fitted frame); stored fits carry video frame numbers.
+    ``basis()``: the actor's features, asked for once a fit has a mesh map: frames whose meshes it makes are
+    stored without their vertices (:func:`capture.run.store.save_frame_fits`).
     """
     from dataclasses import replace
 
@@ -166,10 +169,14 @@ def run_fit_cached(fit_dir: Path, key: dict, total: int, start_fit: Callable[[Pa
     frames: list[int] = []
     pending: list[Any] = []
 
+    made: list[np.ndarray] = []
+
     def flush() -> None:
         if pending:
             name = f"frames_{int(pending[0].frame):06d}.npz"
-            save_frame_fits(fit_dir / name, pending)
+            if basis is not None and not made and getattr(pending[0], "mesh_map", None) is not None:
+                made.append(basis())
+            save_frame_fits(fit_dir / name, pending, made[0] if made else None)
             chunks.append(name)
             pending.clear()
 
@@ -216,8 +223,14 @@ def fit_stage(inputs, track, out_dir: Path, overwrite: bool = False, log: list |
         return fit_take(inputs.actor, take_landmarks(inputs, track), inputs.camera.camera,
                         windowed_fit(inputs, cache))
 
+    def basis():
+        from capture.fit.take import query_template
+        from models.fit_state import mesh_basis
+
+        return mesh_basis(query_template(inputs.actor, inputs.config.device))
+
     return run_fit_cached(fdir, key, len(track), start, "fit", progress, log, overwrite,
-                          frame_map=track.frame_index)
+                          frame_map=track.frame_index, basis=basis)
 
 
 # ------------------------------------------------------------------------------------------ export

@@ -16,6 +16,7 @@ run has succeeded (a journal, ``OUT/.swap.json``, lets the next run finish a swa
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -319,16 +320,30 @@ def write_run_json(out: Path, take_id: str, take_label: str, settings: dict, fin
 STACK_BYTES = 1 << 20   # a field of frame fits at least this large is written frame by frame (capture.io.arrays)
 
 
-def save_frame_fits(path: Path, fits: Sequence[Any]) -> Path:
+MESH_BASIS = "mesh_basis.npy"   # a fit folder's (K, V) float32 basis of the frames' mesh maps
+
+
+def save_frame_fits(path: Path, fits: Sequence[Any], basis: np.ndarray | None = None) -> Path:
     """Stack the fields of dataclass frame fits into one NPZ (None -> NaN; strings as unicode arrays).
 
     A field whose every value is a :func:`capture.fit.records.repeated_rows` view (one row repeated: the
     2D fit's coefficients while F_W is zero) is stored as ``NAME@row`` (n, E) and ``NAME@rows`` (n,), and
-    read back as such views."""
+    read back as such views.
+
+    ``basis`` (the actor's features, :func:`models.fit_state.mesh_basis`): where every fit's ``vertices`` are
+    exactly :func:`models.mesh_map.map_vertices` of its ``mesh_map`` and this basis (checked frame by frame),
+    the vertices are not stored (113 KB a frame at 9,409 vertices against the map's 960 bytes at 24
+    expressions): the basis goes once into the folder (:data:`MESH_BASIS`) and :func:`load_frame_fits` makes
+    them again, to the bit."""
     if not fits:
         raise ValueError("no frame fits to save")
+    drop = basis is not None and _maps_make_vertices(fits, basis)
+    if drop:
+        _save_basis(Path(path).parent / MESH_BASIS, basis)
     arrays: dict[str, np.ndarray] = {}
     for f in dataclasses.fields(fits[0]):
+        if drop and f.name == "vertices":
+            continue
         values = [getattr(x, f.name) for x in fits]
         if all(v is None for v in values):
             continue
@@ -351,6 +366,44 @@ def save_frame_fits(path: Path, fits: Sequence[Any]) -> Path:
     return Path(path)
 
 
+def _maps_make_vertices(fits: Sequence[Any], basis: np.ndarray) -> bool:
+    """Does every fit's ``mesh_map`` give its ``vertices`` bit for bit (0.1 ms a frame)?"""
+    from models.mesh_map import map_vertices
+
+    for f in fits:
+        m, v = getattr(f, "mesh_map", None), getattr(f, "vertices", None)
+        if m is None or v is None or m.dtype != np.float32 or m.shape != (3, basis.shape[0]) \
+                or v.shape != (basis.shape[1], 3) or not np.array_equal(map_vertices(m, basis), v):
+            return False
+    return True
+
+
+def _save_basis(path: Path, basis: np.ndarray) -> None:
+    """Write a fit folder's mesh basis once (atomically); one already there must be the same."""
+    if path.is_file():
+        if not np.array_equal(_load_basis(path), basis):
+            raise ValueError(f"{path} holds another actor's mesh basis")   # a fit folder is keyed by its actor
+        return
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.save(fh, np.ascontiguousarray(basis, np.float32), allow_pickle=False)
+
+
+def _load_basis(path: Path) -> np.ndarray:
+    st = Path(path).stat()
+    return _read_basis(str(path), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_basis(path: str, mtime_ns: int, size: int) -> np.ndarray:
+    """A fit folder's basis (read once per file version: every chunk of a fit uses it)."""
+    b = np.load(path, allow_pickle=False)
+    if b.dtype != np.float32 or b.ndim != 2:
+        raise ValueError(f"{path}: not a (K, V) float32 mesh basis")
+    b.setflags(write=False)
+    return b
+
+
 def _to_numpy(v):
     if hasattr(v, "detach"):
         return v.detach().cpu().numpy()
@@ -362,7 +415,8 @@ def load_frame_fits(path: Path, cls, fields: Iterable[str] | None = None) -> lis
     only these are read, the others are None; ``frame`` always)."""
     from capture.io.arrays import load_npz
 
-    only = None if fields is None else {k + s for k in ("frame", *fields) for s in ("", ROW_SUFFIX, ROWS_SUFFIX)}
+    want = None if fields is None else {"frame", *fields} | ({"mesh_map"} if "vertices" in fields else set())
+    only = None if want is None else {k + s for k in want for s in ("", ROW_SUFFIX, ROWS_SUFFIX)}
     g = load_npz(path, "fit cache", "delete it (or rerun with --overwrite) to fit again", only=only)
     n = len(next(iter(g.values()))) if g else 0
     names = {f.name for f in dataclasses.fields(cls)}
@@ -373,6 +427,11 @@ def load_frame_fits(path: Path, cls, fields: Iterable[str] | None = None) -> lis
                    for k in rows):
         raise CaptureError(f"fit cache {path} does not hold frame fits of one length; delete it (or rerun with "
                            f"--overwrite) to fit again")
+    if "vertices" in names and "vertices" not in g and "mesh_map" in g and (fields is None or "vertices" in fields):
+        g = dict(g)
+        g["vertices"] = _vertices_from_maps(Path(path), g["mesh_map"])
+        if fields is not None and "mesh_map" not in fields:
+            del g["mesh_map"]
     out = []
     for i in range(n):
         kw = {}
@@ -392,6 +451,21 @@ def load_frame_fits(path: Path, cls, fields: Iterable[str] | None = None) -> lis
             kw[f.name] = v
         out.append(cls(**kw))
     return out
+
+
+def _vertices_from_maps(path: Path, maps: np.ndarray) -> list[np.ndarray]:
+    """The vertices of a chunk stored without them (:func:`save_frame_fits`' ``basis``)."""
+    from models.mesh_map import map_vertices
+
+    bpath = path.parent / MESH_BASIS
+    try:
+        basis = _load_basis(bpath)
+        if maps.ndim != 3 or maps.shape[1:] != (3, basis.shape[0]) or maps.dtype != np.float32:
+            raise ValueError(f"mesh maps {maps.dtype} {maps.shape} do not fit a basis {basis.shape}")
+    except (OSError, ValueError) as exc:
+        raise CaptureError(f"fit cache {path}: its meshes need {bpath.name} beside it ({exc}); delete the fit "
+                           f"folder (or rerun with --overwrite) to fit again") from None
+    return [map_vertices(m, basis) for m in maps]
 
 
 def frames_of(fits: Iterable[Any]) -> list[int]:

@@ -472,7 +472,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         def flush():
             if pending:
                 name = f"frames_{int(pending[0].frame):06d}.npz"
-                save_frame_fits(stage_dir / name, pending)
+                save_frame_fits(stage_dir / name, pending, worker.basis)
                 chunks.append(name)
                 pending.clear()
 
