@@ -30,9 +30,12 @@ segments in that budget (1080p), one segment is decoded and detected a piece of
 decoded into buffers that the detector gives back frame by frame as every lane moves past them
 (:class:`capture.io.video.FramePool`, at most :func:`pool_frames`: the largest group and one segment, so the
 decoder fills the next group with this group's frames; the buffers' pages are mapped in one call,
-:func:`capture.io.heap.populated`; other large blocks are allocated off the heap, :mod:`capture.io.heap`). What a run keeps of every frame is small:
-the track's per-landmark arrays and the NPZ writers' rows are spilled to unnamed files a block at a time
-(:class:`capture.io.rows.SpilledRows`; the track is mapped back read-only at the end), each frame's
+:func:`capture.io.heap.populated`; other large blocks are allocated off the heap, :mod:`capture.io.heap`).
+The fit process sends each frame's mesh as its map of the actor's features where it is one
+(``FrameFit.mesh_map``), and the fit thread makes the vertices (:class:`capture.fit.process.FitWorker`).
+What a run keeps of every frame is small: the track's per-landmark arrays and the NPZ writers' rows are
+spilled to unnamed files a block at a time (:class:`capture.io.rows.SpilledRows`; the track is mapped back
+read-only at the end), each frame's
 ``FrameLandmarks`` is let go once exported, and what stays in memory is a few numbers a frame (frame
 index, crop, the report's series; ``benchmarks/bench_pipeline.py --memory``). Every thread watches one stop
 event: an error or an interrupt in any stage stops all of them (a fit window being solved finishes
