@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -123,11 +124,18 @@ def test_rerun_does_nothing_and_a_changed_setting_redoes_what_it_affects(take, f
     assert st["detect"]["frames_detected"] == 0
     assert {p: p.stat().st_mtime_ns for p in (full_run / "meshes").glob("*.obj")} == before
     assert "20 fitted" in capsys.readouterr().out
-    # Other formats: only the export is redone (the fit is still not called).
+    # Other formats: only the export is redone (the fit is still not called), from the fit cache, which holds
+    # each frame's mesh as its map of the actor's features (no vertices): the same meshes as the streamed run's.
+    fit_dir = next(full_run.glob("fit/*/done.json")).parent
+    assert (fit_dir / "mesh_basis.npy").is_file()
+    assert not any("vertices.npy" in zipfile.ZipFile(c).namelist() for c in fit_dir.glob("frames_*.npz"))
+    streamed = trimesh.load(full_run / "meshes" / "frame_000003.obj", process=False).vertices
     assert main(run_args(take_dir, actor, full_run, "--formats", "ply,npz")) == 0
     st = _stages(full_run)
     assert st["fit"]["status"] == "skipped" and st["export"]["status"] == "done"
     assert len(list((full_run / "meshes").glob("*.ply"))) == N_FRAMES
+    np.testing.assert_allclose(trimesh.load(full_run / "meshes" / "frame_000003.ply", process=False).vertices,
+                               streamed, rtol=0, atol=1e-4)     # OBJ text: 4 decimals, rounding <= 5e-5 mm
     assert not list((full_run / "meshes").glob("*.obj"))  # the old export's files are replaced
     assert main(run_args(take_dir, actor, full_run)) == 0  # back to the default formats for later tests
     assert _stages(full_run)["fit"]["status"] == "skipped"
