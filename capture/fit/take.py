@@ -399,7 +399,7 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
     without its vertices, which the receiver makes with :func:`models.mesh_map.map_vertices` (the fit
     process sends under 1 KB a frame instead of 113 KB)."""
     tm = timings if timings is not None else {}
-    basis = None
+    basis = mesh_basis(out_actor)       # what a frame's mesh map maps (FrameFit.mesh_map); a few ms, once
     for k in ("solve_s", "outputs_s", "iterations", "lm_iterations", "windows_solved", "windows_cached"):
         tm.setdefault(k, 0)
     if cache_dir is not None:
@@ -450,14 +450,10 @@ def _run_windows(source, fit_actor: ActorAtPoints, out_actor: ActorAtPoints, set
                 hj, hf = held[i]
                 assert hj == j
                 if ("mesh_map" in hf) != ("mesh_map" in f):    # F_W zero in one window only: blend the meshes
-                    if basis is None:
-                        basis = mesh_basis(out_actor)
                     hf, f = _with_vertices(hf, basis), _with_vertices(f, basis)
                 f = _blend(hf, f, i, _smoothstep((i + 1) / (n_held + 1)))
             if "mesh_map" in f:
                 mesh_map = f["mesh_map"].astype(np.float32)
-                if basis is None:
-                    basis = mesh_basis(out_actor)
                 verts = map_vertices(mesh_map, basis) if vertices else None
             else:
                 mesh_map, verts = None, f["vertices"].astype(np.float32)
