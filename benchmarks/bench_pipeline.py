@@ -313,11 +313,16 @@ def _measure(args, work: Path) -> dict:
             shutil.rmtree(out, ignore_errors=True)
             res = _child(run_cmd(out), cores, watch=out / "run.json")
             rep = json.loads((out / "report.json").read_text())
+            detect = next(st for st in rep["stages"] if st["stage"] == "detect")
             rows.setdefault(name, []).append({"wall_s": res["wall_s"], "frames": rep["frames"]["requested"],
                                               "peak_rss_mb": res["peak_rss_mb"], "peak_pss_mb": res["peak_pss_mb"],
                                               "fit_process_peak_rss_mb": _fit_peak(rep),
                                               "inner_s": rep["seconds_total"], "start_s": res["watch_s"],
-                                              "stages": {st["stage"]: round(st["seconds"], 2) for st in rep["stages"]}})
+                                              "stages": {st["stage"]: round(st["seconds"], 2) for st in rep["stages"]},
+                                              "frame_buffers": detect.get("frame_buffers"),
+                                              # the fit cache's frames (beside them, once: the mesh basis)
+                                              "fit_chunks_mb": sum(f.stat().st_size for f in
+                                                                   out.glob("fit/*/frames_*.npz")) / 2**20})
             shutil.rmtree(out, ignore_errors=True)
         for pace in ([] if args.no_live else [float(x) for x in args.live_fps.split(",")]):
             out = work / f"live_{r}"

@@ -136,6 +136,11 @@ def test_bench_pipeline_quick(tmp_path):
     s = res["summary"]
     assert s["frames"] == 24 and s["run_2_cores_fps"] > 0 and s["detector_only_fps"] > 0
     assert s["live_25_max_lag"] <= 5 and s["live_25_fps_sustained"] > 0 and s["run_peak_rss_mb"] > 0
+    for row in res["rows"]["run 2 cores"] + res["rows"]["run 1 core"]:
+        # decoded into fewer buffers than the take has frames (given back as detection moves on), and the fit
+        # cache holds the meshes as maps: 24 frames of 9,409 vertices would be 2.6 MB of vertices alone
+        assert 0 < row["frame_buffers"] < 24
+        assert 0 < row["fit_chunks_mb"] < 0.5 * 24 * 9409 * 3 * 4 / 2**20
 
 
 def test_bench_stream_poses_quick():
