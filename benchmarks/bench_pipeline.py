@@ -8,9 +8,12 @@ landmarks are a fixed face layout in the crop plus a small term of its random fe
 tracking keeps a crop on the face and the fit sees a plausible face; its cost is that of a real one.
 
 Measured in one run, interleaved (repeat r runs every configuration once before repeat r + 1), each in
-a fresh child process on a fresh output folder so nothing is cached:
+a fresh child process on a fresh output folder so nothing is cached, without the shell's thread variables
+(``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``: until the twentieth round they were set to 1
+here, which hid a spinning BLAS thread that a user's ``capture run`` had):
 
-* ``detector only``: decode + detect of the whole take (``capture.detector.detect_video``, no cache), 2 cores;
+* ``detector only``: decode + detect of the whole take (``capture.detector.detect_video``, no cache), 2 cores,
+  the native pools set as ``capture detect`` sets them;
 * ``run 2 cores``: ``capture run --formats npz,usd`` (the default exports of the issue), both cores;
 * ``run 1 core``: the same pinned to one core (``os.sched_setaffinity``);
 * ``live N``: ``capture live`` on the take played at N frames/s (``--live-fps``, default its own 25 and a
@@ -144,10 +147,14 @@ def setup(work: Path, frames: int, size: str, source: str = "yuv420p") -> dict:
     return {"actor": actor, "video": video, "camera": take / "camera.json", "detector": det / f"{DET_NAME}.onnx"}
 
 
+#: thread variables a shell may carry; the children run without them, as in a user's fresh shell, so that the
+#: figures are those of the product's own thread settings (:mod:`capture.io.threads`)
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def _env() -> dict:
-    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        env[v] = "1"
+    env = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")
     return env
 
 
@@ -244,6 +251,8 @@ def upscaled(video: Path, out: Path, size: tuple[int, int], repeat: int) -> Path
 DETECT_ONLY = """
 import sys, time, json
 from capture.detector import Detector, detect_video
+from capture.io.threads import limit_native_pools
+limit_native_pools(int(sys.argv[3]))    # the pools as capture detect and capture run set them
 det = Detector.load(sys.argv[2], threads=int(sys.argv[3]))
 t0 = time.perf_counter()
 tr = detect_video(sys.argv[1], det, None, progress=False)

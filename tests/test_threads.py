@@ -1,5 +1,6 @@
 """capture.io.threads: the run's OpenCV and USD (TBB) pools limited to --threads, whether pxr is loaded before
-the call or by the USD export after it; without USD's banner on stderr.
+the call or by the USD export after it; without USD's banner on stderr. Every BLAS pool (numpy's, OpenCV's) at one
+thread, in the process and in a process forked from it (the run's fit process).
 
 Each case runs in a fresh interpreter: the pools are process-wide."""
 
@@ -13,8 +14,13 @@ import sys
 import pytest
 
 CHECK = """
-import json, sys
+import json, os, sys
 import cv2
+import numpy
+from threadpoolctl import threadpool_info
+
+def blas():
+    return sorted(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
 if sys.argv[1] == "pxr first":
     from pxr import Work
 if sys.argv[1] != "no call":
@@ -23,13 +29,20 @@ if sys.argv[1] != "no call":
     from capture.export.usd import _pxr
     _pxr()                                  # what the USD export loads pxr with
 from pxr import Work
-print(json.dumps({"cv2": cv2.getNumThreads(), "usd": Work.GetConcurrencyLimit()}))
+r, w = os.pipe()
+if os.fork() == 0:                          # as the run forks its fit process
+    os.write(w, json.dumps(blas()).encode())
+    os._exit(0)
+os.wait()
+forked = json.loads(os.read(r, 1000))
+print(json.dumps({"cv2": cv2.getNumThreads(), "usd": Work.GetConcurrencyLimit(), "blas": blas(), "forked": forked}))
 """
 
 
 def _pools(case: str) -> tuple[dict, str]:
     """The pools in a fresh interpreter, and its stderr, with neither pool's variable in its environment."""
-    env = {k: v for k, v in os.environ.items() if k not in ("PXR_WORK_THREAD_LIMIT", "OPENCV_FOR_THREADS_NUM")}
+    env = {k: v for k, v in os.environ.items() if k not in ("PXR_WORK_THREAD_LIMIT", "OPENCV_FOR_THREADS_NUM",
+                                                            "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
     r = subprocess.run([sys.executable, "-c", CHECK, case], capture_output=True, text=True, check=True, env=env)
     return json.loads(r.stdout.strip().splitlines()[-1]), r.stderr
 
@@ -37,11 +50,11 @@ def _pools(case: str) -> tuple[dict, str]:
 @pytest.mark.parametrize("order", ["pxr first", "pxr after"])
 def test_pools_take_the_runs_threads(order):
     """With pxr loaded before the call the limit is set at once, else when the USD export loads pxr; OpenCV's
-    pool either way; nothing printed. Against the defaults of the same machine, which must be larger for the
-    check to mean anything."""
+    pool either way; both BLAS libraries (numpy's and OpenCV's) at one thread, in a forked child too; nothing
+    printed. Against the defaults of the same machine, which must be larger for the check to mean anything."""
     default, _ = _pools("no call")
-    if default["cv2"] <= 1 or default["usd"] <= 1:
+    if default["cv2"] <= 1 or default["usd"] <= 1 or max(default["blas"]) <= 1:
         pytest.skip(f"this machine's pools already have one thread ({default})")
     got, err = _pools(order)
-    assert got == {"cv2": 1, "usd": 1}
+    assert got == {"cv2": 1, "usd": 1, "blas": [1] * len(default["blas"]), "forked": [1] * len(default["blas"])}
     assert err == ""

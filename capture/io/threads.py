@@ -1,4 +1,4 @@
-"""The native thread pools of a run's own process, set once: OpenCV's and USD's (TBB).
+"""The native thread pools of a run's own process, set once: OpenCV's, USD's (TBB) and the BLAS libraries'.
 
 ``capture run`` gives every stage its threads (capture.run.stream); the libraries' own pools added
 workers of their own to each call: OpenCV's pool (resizes and warps of the detector's crops, the report's
@@ -6,6 +6,12 @@ face crops) and USD's TBB workers (the USD export) waited for work by spinning, 
 ``sched_yield`` calls in one 1,200-frame run on two cores, beside the stages that set the pace. Limited to
 the run's ``--threads`` there are none (``BENCHMARKS.md``, streaming pipeline, sixteenth round: the whole
 run's time did not move measurably on that machine, where a spinning thread yields at once to a busy one).
+The BLAS pools (numpy's OpenBLAS, and the one OpenCV bundles) get one thread whatever ``--threads`` says. The run's
+BLAS calls are small (a frame's mesh from its map, OpenCV's PnP), so a second thread never pays, and an idle
+OpenBLAS worker spins: in a 1,200-frame 720p run on two cores, one such worker of the run's process took 5.7 of the
+run's 25 CPU-s, and the run took 13.0-13.8 s against 10.6-10.9 with one thread (``BENCHMARKS.md``, streaming
+pipeline, twentieth round). The pools are set through threadpoolctl, on the libraries loaded at the call (this
+loads OpenCV's); a forked fit process inherits them.
 torch's threads are set by the fit's process (:mod:`capture.fit.process`), onnxruntime's by the detector's
 session (:mod:`capture.detector.session`).
 """
@@ -18,15 +24,19 @@ _LIMIT: dict[str, int] = {}
 
 
 def limit_native_pools(threads: int) -> None:
-    """OpenCV's worker threads and USD's (``pxr.Work``) concurrency to ``threads`` (>= 1) in this process.
+    """OpenCV's worker threads and USD's (``pxr.Work``) concurrency to ``threads`` (>= 1) in this process, and
+    every loaded BLAS library's to one (the module docstring).
 
     OpenCV with 1 runs its parallel loops in the calling thread (no pool). USD's limit is set now if ``pxr`` is
     loaded, else when the USD export loads it (:func:`limit_usd_pool`): this does not import pxr.
     """
     n = max(1, int(threads))
     import cv2
+    import numpy  # noqa: F401  (loads its BLAS, so that the limit below reaches it)
+    from threadpoolctl import threadpool_limits
 
     cv2.setNumThreads(n)
+    threadpool_limits(1, user_api="blas")
     _LIMIT["threads"] = n
     if "pxr" in sys.modules:
         limit_usd_pool()
