@@ -101,6 +101,8 @@ def test_outputs_open_in_their_readers(take, full_run):
     assert {"python", "torch", "onnxruntime", "opencv", "capture"} <= set(report["versions"])
     assert report["machine"] == machine()
     assert report["settings"]["fit_settings"]["iterations"] == 20
+    blas = report["settings"]["thread_pools"]["blas"]   # numpy's OpenBLAS at least, at one thread (capture.io.threads)
+    assert blas and all(b["threads"] == 1 for b in blas)
     assert {s["stage"] for s in report["stages"]} == {"detect", "fit", "export"}
     assert json.loads((out / "run.json").read_text())["status"] == "done"
     # The fitted meshes are near the truth (a few mm for this tiny, briefly trained setup).

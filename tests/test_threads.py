@@ -25,7 +25,7 @@ if sys.argv[1] == "pxr first":
     from pxr import Work
 if sys.argv[1] != "no call":
     from capture.io.threads import limit_native_pools
-    limit_native_pools(1)
+    returned = limit_native_pools(1)
     from capture.export.usd import _pxr
     _pxr()                                  # what the USD export loads pxr with
 from pxr import Work
@@ -35,7 +35,10 @@ if os.fork() == 0:                          # as the run forks its fit process
     os._exit(0)
 os.wait()
 forked = json.loads(os.read(r, 1000))
-print(json.dumps({"cv2": cv2.getNumThreads(), "usd": Work.GetConcurrencyLimit(), "blas": blas(), "forked": forked}))
+out = {"cv2": cv2.getNumThreads(), "usd": Work.GetConcurrencyLimit(), "blas": blas(), "forked": forked}
+if sys.argv[1] != "no call":               # what the run records in its settings
+    out["returned"] = [returned["opencv"], returned["usd"], sorted(b["threads"] for b in returned["blas"])]
+print(json.dumps(out))
 """
 
 
@@ -56,5 +59,6 @@ def test_pools_take_the_runs_threads(order):
     if default["cv2"] <= 1 or default["usd"] <= 1 or max(default["blas"]) <= 1:
         pytest.skip(f"this machine's pools already have one thread ({default})")
     got, err = _pools(order)
-    assert got == {"cv2": 1, "usd": 1, "blas": [1] * len(default["blas"]), "forked": [1] * len(default["blas"])}
+    ones = [1] * len(default["blas"])
+    assert got == {"cv2": 1, "usd": 1, "blas": ones, "forked": ones, "returned": [1, 1, ones]}
     assert err == ""

@@ -23,9 +23,10 @@ import sys
 _LIMIT: dict[str, int] = {}
 
 
-def limit_native_pools(threads: int) -> None:
+def limit_native_pools(threads: int) -> dict:
     """OpenCV's worker threads and USD's (``pxr.Work``) concurrency to ``threads`` (>= 1) in this process, and
-    every loaded BLAS library's to one (the module docstring).
+    every loaded BLAS library's to one (the module docstring). Returns what the pools now have, for the run's
+    resolved settings: ``{"opencv": n, "usd": n, "blas": [{"library", "version", "threads"}, ...]}``.
 
     OpenCV with 1 runs its parallel loops in the calling thread (no pool). USD's limit is set now if ``pxr`` is
     loaded, else when the USD export loads it (:func:`limit_usd_pool`): this does not import pxr.
@@ -33,13 +34,16 @@ def limit_native_pools(threads: int) -> None:
     n = max(1, int(threads))
     import cv2
     import numpy  # noqa: F401  (loads its BLAS, so that the limit below reaches it)
-    from threadpoolctl import threadpool_limits
+    from threadpoolctl import threadpool_info, threadpool_limits
 
     cv2.setNumThreads(n)
     threadpool_limits(1, user_api="blas")
     _LIMIT["threads"] = n
     if "pxr" in sys.modules:
         limit_usd_pool()
+    return {"opencv": cv2.getNumThreads(), "usd": n,
+            "blas": [{"library": i["internal_api"], "version": i.get("version"), "threads": i["num_threads"]}
+                     for i in threadpool_info() if i["user_api"] == "blas"]}
 
 
 def limit_usd_pool() -> None:

@@ -106,13 +106,14 @@ def run_take(cfg: RunConfig) -> dict:
     from capture.io.threads import limit_native_pools
 
     t_start = time.perf_counter()
-    limit_native_pools(cfg.threads)     # before the USD writer loads pxr
+    pools = limit_native_pools(cfg.threads)     # before the USD writer loads pxr
     inputs = resolve_inputs(cfg)
     out, info, det = inputs.out, inputs.video_info, inputs.detector
     cam = inputs.camera.camera
     label = f"{Path(cfg.video).name} ({info.width}x{info.height}, {info.fps:g} fps, id {inputs.video_id[:12]})"
     settings = {**cfg.to_dict(), "out": str(out), "detector": str(det.onnx_path),
-                "frame_range": list(inputs.frame_range), "fit_settings": inputs.fit_settings.to_dict()}
+                "frame_range": list(inputs.frame_range), "fit_settings": inputs.fit_settings.to_dict(),
+                "thread_pools": pools}
     fingerprints = {"video": inputs.video_id, "actor_weights_sha256": inputs.actor_weights_sha256,
                     "embedding_sha256": inputs.embedding_sha256, "detector": det.identity(),
                     "camera": camera_to_dict(cam)}
