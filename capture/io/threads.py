@@ -32,8 +32,7 @@ def limit_native_pools(threads: int) -> dict:
     loaded, else when the USD export loads it (:func:`limit_usd_pool`): this does not import pxr.
     """
     n = max(1, int(threads))
-    import cv2
-    import numpy  # noqa: F401  (loads its BLAS, so that the limit below reaches it)
+    import cv2  # loads numpy, and so both OpenBLAS libraries, before the limit below
     from threadpoolctl import threadpool_info, threadpool_limits
 
     cv2.setNumThreads(n)
