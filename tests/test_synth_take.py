@@ -131,3 +131,24 @@ def test_unknown_actor_and_existing_out(take, tmp_path, capsys):
     (tmp_path / "other" / "keep.txt").write_text("x")
     assert main(["synth", "--actor", str(actor), "--out", str(tmp_path / "other"), "--overwrite", "--no-progress"]) == 2
     assert "refusing" in capsys.readouterr().err and (tmp_path / "other" / "keep.txt").exists()
+
+
+def test_bundled_actor_is_not_written(tmp_path, monkeypatch, capsys):
+    """``--actor demo`` (the bundled actor, read-only) puts the take's landmark embedding into the user's copy of
+    the actor, which then shadows the bundled one for ``capture run --actor demo``; the package is left as shipped."""
+    from capture.actor.package import bundled_actor, resolve_actor
+
+    monkeypatch.setenv("CAPTURE_ACTORS", str(tmp_path / "actors"))
+    bundled = bundled_actor("demo")
+    before = sorted(p.relative_to(bundled) for p in bundled.rglob("*"))
+    out = tmp_path / "take"
+    assert main(["synth", "--actor", "demo", "--out", str(out), "--frames", "2", "--size", "160x120",
+                 "--landmarks", "50", "--no-progress"]) == 0
+    said = capsys.readouterr().out
+    assert sorted(p.relative_to(bundled) for p in bundled.rglob("*")) == before
+    report = json.loads((out / "truth.json").read_text())
+    copy = tmp_path / "actors" / "demo"
+    emb = copy / "landmarks" / f"{report['detector']['name']}.json"
+    assert emb.is_file() and report["detector"]["embedding"] == str(emb)
+    assert "bundled (read-only)" in said and str(copy) in said
+    assert resolve_actor("demo") == copy

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Optional
 
@@ -50,7 +51,7 @@ def synth_command(
     """Render a synthetic take of an actor with known truth: video, camera, ground-truth meshes and
     parameters, landmarks, and a detector that reads the rendered pixels."""
     from capture.synth.progress import synthesize_shown
-    from capture.synth.take import SynthConfig, parse_size
+    from capture.synth.take import TRUTH_JSON, SynthConfig, parse_size
 
     if frames is None:
         frames = 1_000_000 if meshes is not None else 150
@@ -58,4 +59,7 @@ def synth_command(
                       landmarks=landmarks, distortion=_parse_distortion(distortion), camera=camera, codec=codec,
                       crf=crf, obj=obj, look=look, overwrite=overwrite, meshes=meshes, units=units)
     path = synthesize_shown(cfg, progress)
-    typer.echo(f"synthetic take written to {path}")
+    truth = json.loads((path / TRUTH_JSON).read_text())
+    if truth["actor"].get("note"):          # a bundled actor: the embedding went into the user's copy
+        typer.echo(truth["actor"]["note"])
+    typer.echo(f"synthetic take written to {path}; its detector's landmark embedding: {truth['detector']['embedding']}")

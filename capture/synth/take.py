@@ -43,7 +43,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.camera import Camera, default_camera
 from calib.camera_io import check_camera_plausible, read_camera, write_camera
-from capture.actor.package import load_actor
+from capture.actor.package import load_actor, user_copy_of_bundled
 from capture.io.atomic import atomic_path, write_bytes, write_json
 from capture.io.errors import CaptureError
 from capture.synth import scene
@@ -333,7 +333,9 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
     embedding = embedding_dict(name, landmarks, source)
     write_bytes(out / "detector" / f"{name}.onnx", onnx_bytes)
     write_json(out / "detector" / f"{name}.json", spec_dict(name, L, cfg.detector_size))
-    write_json(actor.path / "landmarks" / f"{name}.json", embedding)
+    # the embedding goes into the actor's package; a bundled actor is read-only, so into the user's copy of it
+    emb_actor, copy_note = user_copy_of_bundled(actor.path, None if Path(cfg.actor).is_dir() else cfg.actor)
+    write_json(emb_actor / "landmarks" / f"{name}.json", embedding)
     timings["files_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     timings["render_per_frame_s"] = timings["render_encode_s"] / T
@@ -343,7 +345,7 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
     settings["distortion"] = camera.dist.tolist()
     report = {
         "format": "capture-synth-take", "version": 1,
-        "actor": {"name": actor.name, "path": str(actor.path)},
+        "actor": {"name": actor.name, "path": str(actor.path), "embedding_in": str(emb_actor), "note": copy_note},
         "settings": settings,
         "seed": cfg.seed,
         "preset": preset_dict(PRESETS[cfg.preset]),
@@ -358,7 +360,7 @@ def synthesize(cfg: SynthConfig, on_stage: Callable[[str, int], None] | None = N
                             "top; truth_params jaw and coefficients are not known (rest and 0)"}),
         "colour_code": {**code.to_dict(), "quantisation": "ordered 4x4 Bayer dither (capture.synth.texture)"},
         "detector": {"name": name, "onnx": f"detector/{name}.onnx", "spec": f"detector/{name}.json",
-                     "embedding": str(actor.path / "landmarks" / f"{name}.json")},
+                     "embedding": str(emb_actor / "landmarks" / f"{name}.json")},
         "video": {"file": VIDEO, "codec": cfg.codec, "crf": cfg.crf if cfg.codec == "h264" else 0,
                   "fps": cfg.fps, "frames": T},
         "look_video": ({"file": LOOK_VIDEO, "codec": "h264", "crf": LOOK_CRF,
