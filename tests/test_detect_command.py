@@ -81,6 +81,7 @@ def test_detect_command_writes_landmarks_overlay_summary_and_shares_the_cache(tm
     np.testing.assert_allclose(summary["per_landmark"]["step_rms_px"], step, atol=1e-5)
     np.testing.assert_allclose(summary["per_landmark"]["noise_rms_px"], noise, atol=1e-5)
     assert summary["run"]["detected_frames"] == 12 and summary["run"]["cached_frames"] == 0
+    assert all(b["threads"] == 1 for b in summary["run"]["thread_pools"]["blas"])   # capture.io.threads
     with VideoReader(d / "overlay.mp4") as r:
         assert (r.info.frame_count, r.info.width, r.info.height) == (12, 360, 288)
         frames = dict(r.frames([0]))

@@ -117,6 +117,8 @@ def test_live_keeps_its_lag_and_equals_the_offline_run_of_the_same_frames(take, 
     assert all(0 <= m["lag_frames"] <= lag for m in lines) and live["lag"]["max_frames"] <= lag
     assert set(lines[0]["expressions"]) == {"jawOpen", "smile", "browUp"}
     assert all(m["t_final_s"] >= m["t_source_s"] for m in lines)
+    pools = live["settings"]["thread_pools"]          # recorded as set (capture.io.threads)
+    assert pools["blas"] and all(b["threads"] == 1 for b in pools["blas"]) and pools["usd"] == cfg.threads
 
     off = run_live(replace(cfg, realtime=False, only_frames=tuple(fr["processed_frames"]), json_to="none",
                            out=tmp_path / "offline"))

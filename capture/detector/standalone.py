@@ -50,7 +50,7 @@ def run_detect(cfg: DetectConfig, say=print) -> dict:
         raise CaptureError(f"--threads must be at least 1, got {cfg.threads}")
     det_path = Path(cfg.detector) if cfg.detector is not None else default_detector(video)
     detector = Detector.load(det_path, threads=cfg.threads)
-    limit_native_pools(cfg.threads)
+    pools = limit_native_pools(cfg.threads)
     if detector.spec.kind == "query":
         raise CaptureError(f"detector {detector.name} is a query detector: it needs an actor's template points, "
                            f"so it cannot run alone; use capture run --actor A")
@@ -67,7 +67,7 @@ def run_detect(cfg: DetectConfig, say=print) -> dict:
     summary["run"] = {"video": str(video), "frames": [start, end], "detector_onnx": str(det_path),
                       "spec": str(detector.spec.path), **detector.identity(),
                       "cached_frames": track.cached_frames, "detected_frames": track.detected_frames,
-                      "model_calls": detector.model_calls}
+                      "model_calls": detector.model_calls, "thread_pools": pools}
     files = ["landmarks.npz", "summary.json"]
     if cfg.overlay:
         write_overlay(video, track, detector.spec.input.size, d / "overlay.mp4", cfg.progress)

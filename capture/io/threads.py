@@ -33,14 +33,23 @@ def limit_native_pools(threads: int) -> dict:
     """
     n = max(1, int(threads))
     import cv2  # loads numpy, and so both OpenBLAS libraries, before the limit below
-    from threadpoolctl import threadpool_info, threadpool_limits
+    from threadpoolctl import threadpool_limits
 
     cv2.setNumThreads(n)
     threadpool_limits(1, user_api="blas")
     _LIMIT["threads"] = n
     if "pxr" in sys.modules:
         limit_usd_pool()
-    return {"opencv": cv2.getNumThreads(), "usd": n,
+    return native_pools()
+
+
+def native_pools() -> dict:
+    """What this process's pools have now, for a run's record: ``{"opencv": threads, "usd": the limit set (None
+    before :func:`limit_native_pools`), "blas": [{"library", "version", "threads"} per loaded BLAS library]}``."""
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    return {"opencv": cv2.getNumThreads(), "usd": _LIMIT.get("threads"),
             "blas": [{"library": i["internal_api"], "version": i.get("version"), "threads": i["num_threads"]}
                      for i in threadpool_info() if i["user_api"] == "blas"]}
 

@@ -219,6 +219,7 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
     from capture.fit.process import FitStopped, FitWorker
     from capture.fit.records import WindowedFit
     from capture.io.atomic import write_json
+    from capture.io.threads import native_pools
     from capture.run.take import Detection
 
     pl = Pipeline()
@@ -377,7 +378,8 @@ def _pipeline(cfg, cap, first, is_file, fps, det, actor, points, camera, setting
         "format": "capture-live", "version": 1, "source": str(cfg.source), "label": label,
         "actor": str(actor.path), "detector": str(det.onnx_path), "camera": camera_to_dict(camera.camera),
         "settings": {"lag": cfg.lag, "window": window, "overlap": overlap, "fps": fps, "realtime": cfg.realtime,
-                     "formats": list(cfg.formats), "fit": settings.to_dict(), "poses": "causal (past frames only)"},
+                     "formats": list(cfg.formats), "fit": settings.to_dict(), "poses": "causal (past frames only)",
+                     "thread_pools": native_pools()},
         "frames": {"received": stats["received"], "processed": stats["processed"], "dropped": stats["dropped"],
                    "dropped_why": why, "processed_frames": [int(p) for p in position]},
         "lag": {"max_frames": int(max(lags)) if lags else None, "mean_frames": float(np.mean(lags)) if lags else None},
