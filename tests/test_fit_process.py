@@ -238,6 +238,88 @@ def test_the_fit_process_ends_when_its_parent_is_gone(take):
     assert not worker._proc.is_alive() and worker._proc.exitcode == 0
 
 
+def test_a_prestarted_process_takes_the_next_forked_worker_and_gives_the_same_fits(take):
+    """prestart() forks the fit process ahead; the next worker that forks takes it instead (a threaded one leaves
+    it), sends it the take and gets the fits of this process, bit for bit; then it ends like any worker's."""
+    from capture.fit import process as P
+    from capture.fit.stream import fit_take_stream
+    from capture.fit.take import WindowedFit
+
+    actor, tp, cam, rows, _ = take
+    how = WindowedFit("default", window=4, overlap=1)
+    ref = list(fit_take_stream(actor, iter(rows), tp, cam, how))
+    assert P.prestart() and not P.prestart()           # one at a time
+    proc = P._PRESTARTED[0][0]
+    threaded = P.FitWorker(actor, tp, cam, how, in_process=False)
+    assert not threaded.prestarted and P._PRESTARTED
+    threaded.close(timeout=30)
+    worker = P.FitWorker(actor, tp, cam, how, in_process=True)
+    assert worker.prestarted and worker._proc is proc and not P._PRESTARTED
+    got = _run(worker, rows)
+    assert [int(f.frame) for f, _ in got] == [int(f.frame) for f in ref]
+    for (a, _), b in zip(got, ref):
+        for k in ("head_R", "head_t", "jaw_R", "jaw_t", "code", "coefficients_landmarks", "vertices", "landmarks_fit"):
+            np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=f"frame {a.frame} {k}")
+    assert not proc.is_alive() and proc.exitcode == 0
+
+
+def test_a_prestarted_process_no_worker_took_ends(take):
+    """Released (a run whose fit was cached, or that failed before it), or its parent gone, a prestarted fit
+    process exits instead of waiting for ever."""
+    from capture.fit import process as P
+
+    assert P.prestart()
+    proc = P._PRESTARTED[0][0]
+    P.release_prestarted()
+    assert not proc.is_alive() and proc.exitcode == 0 and not P._PRESTARTED
+    assert P.prestart()
+    proc, rows, out, ready = P._PRESTARTED.pop()
+    rows.close()                       # what the kernel does to a killed parent's descriptors
+    proc.join(30)
+    assert not proc.is_alive() and proc.exitcode == 0
+    out.close()
+    ready.close()
+
+
+def test_a_parent_that_exits_without_releasing_its_prestarted_process_does_not_hang():
+    """A prestarted process takes SIGTERM until it has a take, so multiprocessing ends it at the parent's exit
+    (it would wait for it for ever otherwise)."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    code = ("import os\nfrom capture.fit.process import _PRESTARTED, prestart\n"
+            "assert prestart()\nprint(_PRESTARTED[0][0].pid, flush=True)\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    pid = int(r.stdout.split()[-1])
+    assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]
+
+
+def test_a_take_that_does_not_pickle_ends_the_prestarted_process_and_forks_afresh(take):
+    """The prestarted process gets its take pickled; where that fails, the worker ends it and forks as before
+    (which pickles nothing), with the same fits."""
+    import copy
+
+    from capture.fit import process as P
+    from capture.fit.stream import fit_take_stream
+    from capture.fit.take import WindowedFit
+
+    actor, tp, cam, rows, _ = take
+    how = WindowedFit("default", window=4, overlap=1)
+    ref = list(fit_take_stream(actor, iter(rows), tp, cam, how))
+    assert P.prestart()
+    proc = P._PRESTARTED[0][0]
+    unpicklable = copy.copy(actor)
+    unpicklable.callback = lambda: None          # a lambda does not pickle
+    worker = P.FitWorker(unpicklable, tp, cam, how, in_process=True)
+    assert not worker.prestarted and not P._PRESTARTED and not proc.is_alive()
+    got = _run(worker, rows)
+    assert [int(f.frame) for f, _ in got] == [int(f.frame) for f in ref]
+    for (a, _), b in zip(got, ref):
+        np.testing.assert_array_equal(a.vertices, b.vertices, err_msg=f"frame {a.frame}")
+
+
 def test_a_stop_event_ends_the_results_and_close_ends_the_process(take):
     from capture.fit.process import FitStopped, FitWorker
     from capture.fit.take import WindowedFit
@@ -289,6 +371,7 @@ def test_capture_run_loads_neither_torch_nor_trimesh_outside_its_fit_process(tak
     report = json.loads((out / "report.json").read_text())
     fit = next(s for s in report["stages"] if s["stage"] == "fit")
     assert fit["fit_process"] is True and report["frames"]["fitted"] == N_FRAMES
+    assert fit["fit_process_prestarted"] is True      # forked first, it imported torch while the run started
     assert len(list((out / "meshes").glob("*.obj"))) == N_FRAMES
     svgs = re.findall(r"src='data:image/svg\+xml;base64,([^']+)'", (out / "report.html").read_text())
     assert any(b"jawOpen" in base64.b64decode(b) for b in svgs)    # the rig the fit process handed back

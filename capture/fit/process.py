@@ -15,9 +15,14 @@ before the parent starts other threads (a lock held by another thread at the for
 the child). Off Linux (no fork on Windows; macOS' system libraries are not fork-safe), or with
 ``in_process=False``, the same code runs in a thread, through the same pipes.
 
+A command can fork the fit process before its own start-up (:func:`prestart`, ``capture run``): it imports torch
+and the fit (about 1 s) while the command loads its inputs on the other core, then waits for its take, which the
+next worker sends it (the actor and the settings, pickled: about 4 MB, a few ms) instead of forking.
+
 Protocol::
 
-    parent -> child   (points (L, 2), weights (L,), face_found, PnP head pose or None) per frame, then
+    parent -> child   (a prestarted process only) ("take", the actor, the settings ...) or NO_TAKE first; then
+                      (points (L, 2), weights (L,), face_found, PnP head pose or None) per frame, then
                       END (or ABORT)
     child -> parent   on the ready pipe, the PnP model points (the actor at the landmarks), then BUILT
                       once the networks are evaluated at every template vertex; on its own pipe,
@@ -53,6 +58,7 @@ from models.mesh_map import map_vertices
 
 END = "end"
 ABORT = "abort"
+NO_TAKE = "no take"    # to a prestarted fit process that no worker took: exit
 BUILT = "built"        # on the ready pipe after the PnP model: the actor's networks are evaluated
 JOIN_S = 600.0         # how long :meth:`FitWorker.close` waits for the window being solved
 TRIM_EVERY_FRAMES = 2400  # the fit process gives its free heap back this often (capture.io.heap.release_free_heap)
@@ -178,6 +184,103 @@ def _child_main(rows_conn, out_conn, ready_conn, parent_ends, actor, template_po
             ready_conn.close()
 
 
+#: the fit process forked ahead by :func:`prestart` and not yet taken: (process, rows, out, ready) pipe ends
+_PRESTARTED: list[tuple] = []
+#: what a prestarted process imports while it waits: what :func:`_child_main` needs
+PRESTART_IMPORTS = ("torch", "capture.fit.stream", "capture.fit.take", "models.fit_state")
+
+
+def prestart() -> bool:
+    """Fork the fit process now, before the caller's own imports and threads (where :meth:`FitWorker.forks`): it
+    imports torch and the fit while the caller starts, then waits for the next :class:`FitWorker` that forks, which
+    takes it instead of forking. :func:`release_prestarted` ends it if none does. True when forked."""
+    if _PRESTARTED or not FitWorker.forks(None):
+        return False
+    ctx = multiprocessing.get_context("fork")
+    rows_child, rows = ctx.Pipe(duplex=False)
+    out, out_child = ctx.Pipe(duplex=False)
+    ready, ready_child = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_prestarted_main, args=(rows_child, out_child, ready_child, (rows, out, ready)),
+                       name="capture-fit", daemon=True)
+    proc.start()
+    for c in (rows_child, out_child, ready_child):
+        c.close()
+    _PRESTARTED.append((proc, rows, out, ready))
+    return True
+
+
+def release_prestarted(timeout: float = 10.0) -> None:
+    """End the prestarted fit process that no worker took (nothing to do when there is none)."""
+    import pickle
+
+    while _PRESTARTED:
+        proc, rows, out, ready = _PRESTARTED.pop()
+        try:
+            rows.send_bytes(pickle.dumps(NO_TAKE))
+        except Exception:        # gone already, or its pipe closed: the join below sees to it
+            pass
+        for c in (rows, out, ready):
+            c.close()
+        proc.join(timeout)
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
+
+
+def _take_prestarted(take: tuple) -> tuple | None:
+    """The prestarted process's ``(process, rows, out, ready, the take pickled)``, taken off the list; None where
+    there is none, it has died, or the take does not pickle (it is then ended, and the worker forks afresh)."""
+    if not _PRESTARTED:
+        return None
+    from multiprocessing.reduction import ForkingPickler     # as Connection.send
+
+    proc = _PRESTARTED[-1][0]
+    try:
+        payload = bytes(ForkingPickler.dumps(take)) if proc.is_alive() else None
+    except Exception:            # e.g. an actor holding something that does not pickle
+        payload = None
+    if payload is None:
+        release_prestarted()
+        return None
+    return (*_PRESTARTED.pop(), payload)
+
+
+def _prestarted_main(rows_conn, out_conn, ready_conn, parent_ends) -> None:
+    """A prestarted fit process: the imports, then the take the parent sends (or none). Ctrl-C is the parent's to
+    handle; SIGTERM ends it until it has a take (so that a parent which exits without releasing it can end it:
+    multiprocessing terminates its daemonic children at exit), then _child_main ignores it too."""
+    import importlib
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for c in parent_ends:
+        c.close()
+    got: list[bytes] = []
+
+    def read_take():
+        """The take's message, read as soon as it comes: the parent's send of its ~4 MB must not wait for the
+        imports (a pipe holds 64 KB), or its stages would start that much later."""
+        try:
+            got.append(rows_conn.recv_bytes())
+        except (EOFError, OSError):                  # the parent is gone
+            pass
+
+    reader = threading.Thread(target=read_take, name="capture-fit-take", daemon=True)
+    reader.start()
+    for name in PRESTART_IMPORTS:
+        importlib.import_module(name)
+    from capture.io.threads import limit_native_pools
+
+    limit_native_pools(1)        # forked before the parent set its pools: OpenCV's and the BLAS libraries' as there
+    reader.join()
+    if not got:
+        return
+    from multiprocessing.reduction import ForkingPickler     # what Connection.send pickled it with
+
+    msg = ForkingPickler.loads(got[0])
+    if isinstance(msg, tuple) and msg and msg[0] == "take":
+        _child_main(rows_conn, out_conn, ready_conn, (), *msg[1:])
+
+
 class FitWorker:
     """:func:`capture.fit.stream.fit_take_stream` in a child process (or a thread), fed row by row.
 
@@ -210,10 +313,16 @@ class FitWorker:
 
         self.in_process = self.forks(in_process)
         self.actor = actor
+        take = ("take", actor, template_points, camera, how, causal, threads, False, nice)
+        taken = _take_prestarted(take) if self.in_process else None
+        self.prestarted = taken is not None     # a process forked by prestart() took the fit
         ctx = multiprocessing.get_context("fork") if self.in_process else multiprocessing
-        self._rows_child, self._rows = ctx.Pipe(duplex=False)    # (receive end, send end)
-        self._out, self._out_child = ctx.Pipe(duplex=False)
-        self._ready, self._ready_child = ctx.Pipe(duplex=False)     # the PnP model, once the networks are built
+        if taken is None:
+            self._rows_child, self._rows = ctx.Pipe(duplex=False)    # (receive end, send end)
+            self._out, self._out_child = ctx.Pipe(duplex=False)
+            self._ready, self._ready_child = ctx.Pipe(duplex=False)     # the PnP model, once the networks are built
+        else:
+            self._proc, self._rows, self._out, self._ready, payload = taken
         self.timings: dict = {}
         self._n_landmarks, self._camera = len(template_points), camera
         self._pnp_settings = PnPSettings()     # fit_take_stream's default
@@ -227,6 +336,9 @@ class FitWorker:
         self.rows_sent = 0
         self.rows_read = 0      # as the fit last said (with a fit, or when it waits for rows)
         self._progress = threading.Condition()
+        if taken is not None:      # forked before: it imported torch meanwhile, and now gets its take
+            self._rows.send_bytes(payload)
+            return
         args = (self._rows_child, self._out_child, self._ready_child, (self._rows, self._out, self._ready), actor,
                 template_points, camera, how, causal, threads, not self.in_process, nice)
         if self.in_process:

@@ -493,6 +493,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         timings = worker.timings
         clocks["fit"].busy = float(timings.get("busy_s", 0.0))
         clocks["fit"].extra = {"chunks": chunks, "frames": fitted, "process": worker.in_process,
+                               "prestarted": worker.prestarted,
                                **{k: v for k, v in timings.items() if isinstance(v, (int, float))}}
         fits.put(_END)
 
@@ -607,7 +608,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
          "faces_found": int(track.face_found.sum()), "streamed": True},
         {"stage": "fit", "status": "done", "seconds": c["fit"].busy, "finished_after_s": c["fit"].finished,
          "frames": len(fx.get("frames", [])), "fit_dir": str(final), "streamed": True,
-         "fit_process": bool(fx.get("process")),
+         "fit_process": bool(fx.get("process")), "fit_process_prestarted": bool(fx.get("prestarted")),
          **{k: fx[k] for k in ("query_s", "pnp_s", "solve_s", "outputs_s", "windows_solved", "windows_cached",
                                     "peak_rss_mb", "landmark_noise_px", "landmarks_per_frame",
                                     "temporal_prior_scale_min", "temporal_prior_scale_max")

@@ -102,10 +102,21 @@ def check_complete(requested: list[int], fitted: list[int]) -> None:
 
 def run_take(cfg: RunConfig) -> dict:
     """Run the whole take; returns the report (also written to ``OUT/report.json``)."""
+    from capture.fit.process import prestart, release_prestarted
+
+    t_start = time.perf_counter()
+    if cfg.side_processes and not cfg.segments:   # the fit's process first: it imports torch while this one starts
+        prestart()
+    try:
+        return _run_take(cfg, t_start)
+    finally:
+        release_prestarted()     # where no fit ran (all cached, or an error before it)
+
+
+def _run_take(cfg: RunConfig, t_start: float) -> dict:
     from calib.camera_io import camera_to_dict
     from capture.io.threads import limit_native_pools
 
-    t_start = time.perf_counter()
     pools = limit_native_pools(cfg.threads)     # before the USD writer loads pxr
     inputs = resolve_inputs(cfg)
     out, info, det = inputs.out, inputs.video_info, inputs.detector
