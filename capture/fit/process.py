@@ -200,16 +200,22 @@ def prestart() -> bool:
     if _PRESTARTED or not FitWorker.forks(None):
         return False
     ctx = multiprocessing.get_context("fork")
-    rows_child, rows = ctx.Pipe(duplex=False)
+    child_ends, parent_ends = _fit_pipes(ctx)
+    proc = ctx.Process(target=_prestarted_main, args=(*child_ends, parent_ends), name="capture-fit", daemon=True)
+    proc.start()
+    for c in child_ends:
+        c.close()
+    _PRESTARTED.append((proc, *parent_ends))
+    return True
+
+
+def _fit_pipes(ctx) -> tuple[tuple, tuple]:
+    """The three one-way pipes between a run and its fit: ``((rows, out, ready) ends of the fit, the same of the
+    run)``. The run sends rows and reads fits and the PnP model (once the networks are built)."""
+    rows_child, rows = ctx.Pipe(duplex=False)      # (receive end, send end)
     out, out_child = ctx.Pipe(duplex=False)
     ready, ready_child = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_prestarted_main, args=(rows_child, out_child, ready_child, (rows, out, ready)),
-                       name="capture-fit", daemon=True)
-    proc.start()
-    for c in (rows_child, out_child, ready_child):
-        c.close()
-    _PRESTARTED.append((proc, rows, out, ready))
-    return True
+    return (rows_child, out_child, ready_child), (rows, out, ready)
 
 
 def release_prestarted(timeout: float = 10.0) -> None:
@@ -321,9 +327,8 @@ class FitWorker:
         self.prestarted = taken is not None     # a process forked by prestart() took the fit
         ctx = multiprocessing.get_context("fork") if self.in_process else multiprocessing
         if taken is None:
-            self._rows_child, self._rows = ctx.Pipe(duplex=False)    # (receive end, send end)
-            self._out, self._out_child = ctx.Pipe(duplex=False)
-            self._ready, self._ready_child = ctx.Pipe(duplex=False)     # the PnP model, once the networks are built
+            ((self._rows_child, self._out_child, self._ready_child),
+             (self._rows, self._out, self._ready)) = _fit_pipes(ctx)
         else:
             self._proc, self._rows, self._out, self._ready, payload = taken
         self.timings: dict = {}
