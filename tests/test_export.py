@@ -3,6 +3,7 @@ PyAV/OpenCV), unknown formats are one-line errors, and an aborted export leaves 
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -278,6 +279,8 @@ def test_npz_rows_spilled_in_blocks_equal_the_stacked_rows(tmp_path, take, monke
         np.testing.assert_allclose(z["coefficients_base"][2], fits[2].coefficients_landmarks.mean(0), rtol=1e-6)
         assert np.isnan(z["coefficients_base"][4]).all()
         np.testing.assert_array_equal(z["reprojection_rms_px"], [f.reprojection_rms_px for f in fits])
+    with zipfile.ZipFile(tmp_path / "params.npz") as z:     # frames of their own: stored, as every member
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_STORED}
     with np.load(tmp_path / "landmarks.npz", allow_pickle=False) as z:
         np.testing.assert_array_equal(z["points"], _stacked([None if d is None else d.points for d in dets],
                                                             np.float64, (L, 2)))
@@ -286,6 +289,33 @@ def test_npz_rows_spilled_in_blocks_equal_the_stacked_rows(tmp_path, take, monke
         np.testing.assert_array_equal(z["landmarks_fit"], _stacked([f.landmarks_fit for f in fits], np.float64,
                                                                    (L, 2)))
         np.testing.assert_array_equal(z["face_found"], [d is not None and d.face_found for d in dets])
+
+
+def test_npz_coefficients_repeated_at_every_landmark_are_deflated(tmp_path, take):
+    """The 2D default gives every landmark of a frame the same coefficients: params.npz then deflates that
+    member (it repeats each row L times), reads back the same with np.load, and stores every other member."""
+    from dataclasses import replace
+
+    from capture.export import params as params_module
+    from capture.fit.records import repeated_rows
+
+    rng = np.random.default_rng(6)
+    fits = [replace(f, coefficients_landmarks=repeated_rows(np.tile(rng.normal(size=E), (L, 1))))
+            for f in take["fits"]]
+    writer = params_module.ParamsWriter(tmp_path, take["ctx"])
+    for f, d in zip(fits, take["dets"]):
+        writer.write(f, None, d)
+    writer.close()
+    with zipfile.ZipFile(tmp_path / "params.npz") as z:
+        kinds = {i.filename: i.compress_type for i in z.infolist()}
+        stored = z.getinfo("coefficients_landmarks.npy")
+        assert stored.compress_size < stored.file_size / 2     # 5 landmarks here: each row 5 times
+    assert kinds.pop("coefficients_landmarks.npy") == zipfile.ZIP_DEFLATED
+    assert set(kinds.values()) == {zipfile.ZIP_STORED}
+    with np.load(tmp_path / "params.npz", allow_pickle=False) as z:
+        got = z["coefficients_landmarks"]
+        assert got.dtype == np.float32 and got.shape == (len(fits), L, E)
+        np.testing.assert_array_equal(got, np.stack([f.coefficients_landmarks for f in fits]).astype(np.float32))
 
 
 def test_npz_rows_of_another_shape_are_refused_when_they_arrive(tmp_path, take):

@@ -46,3 +46,27 @@ def test_refuses_rows_that_differ_and_objects(tmp_path):
         write_npz(fh, {"x": np.array([{}, None], dtype=object)})
     with open(tmp_path / "d.npz", "wb") as fh, pytest.raises(ValueError, match="no rows"):
         write_npz(fh, {"x": []})
+
+
+def test_deflated_members_read_back_and_only_those_are_compressed(tmp_path):
+    """``deflate`` compresses just the named members (what params.npz does with coefficients repeated per
+    landmark): np.load reads the same arrays, the file shrinks, and the checked cache reader refuses it."""
+    import zipfile
+
+    rng = np.random.default_rng(1)
+    rows = rng.normal(size=(50, 1, 24)).astype(np.float32)
+    arrays = {"repeated": np.ascontiguousarray(np.broadcast_to(rows, (50, 468, 24))), "noise": rng.normal(size=(50, 3))}
+    with open(tmp_path / "plain.npz", "wb") as fh:
+        write_npz(fh, arrays)
+    with open(tmp_path / "deflated.npz", "wb") as fh:
+        write_npz(fh, arrays, deflate=["repeated"])
+    with zipfile.ZipFile(tmp_path / "deflated.npz") as z:
+        kinds = {i.filename: i.compress_type for i in z.infolist()}
+    assert kinds == {"repeated.npy": zipfile.ZIP_DEFLATED, "noise.npy": zipfile.ZIP_STORED}
+    assert (tmp_path / "deflated.npz").stat().st_size < (tmp_path / "plain.npz").stat().st_size / 20
+    with np.load(tmp_path / "deflated.npz", allow_pickle=False) as z:
+        for k, v in arrays.items():
+            assert z[k].dtype == v.dtype
+            np.testing.assert_array_equal(z[k], v)
+    with pytest.raises(Exception, match="compressed"):
+        load_npz(tmp_path / "deflated.npz", "test archive", "write it again")
