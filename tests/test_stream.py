@@ -299,20 +299,20 @@ def test_detection_groups_ramp_up_and_down(lanes):
             assert lanes in sizes and sizes.count(lanes) >= n // lanes - 3
 
 
-def test_the_frame_pool_holds_the_largest_group_and_one_segment():
-    """The decoder fills the next group while the detector gives this one back frame by frame: the cap is the
-    largest group (or, for one segment decoded by pieces, the piece) plus a segment, never two groups; pieces
-    (1080p) keep their two pieces, so memory does not grow there."""
+def test_the_frame_pool_holds_the_largest_group_and_a_frame_per_lane():
+    """The decoder fills the next group while the detector gives this one back a frame per lane at each step:
+    the cap is the largest group (or, for one segment decoded by pieces, the piece) plus a frame per lane,
+    never a second segment (each buffer is memory touched for the first time)."""
     from capture.run.stream import DetectPlan, pool_frames
 
     seg = {s: 32 for s in range(0, 320, 32)}
     seg[288] = 20                                             # the take's last, short segment
     plan = DetectPlan(sorted(seg), seg, {}, [[0, 32], [64, 96, 128], [160, 192, 224], [256], [288]], [], None, None)
-    assert pool_frames(plan) == 96 + 32
+    assert pool_frames(plan) == 96 + 3
     plan.piece = 10                                           # 1080p: single segments go by pieces of 10 frames
-    assert pool_frames(plan) == 96 + 32
+    assert pool_frames(plan) == 96 + 3
     plan.groups = [[0], [32], [64]]
-    assert pool_frames(plan) == 10 + 10
+    assert pool_frames(plan) == 10 + 1
     plan.groups = []                                          # everything cached
     assert pool_frames(plan) == 1 + 1
 
@@ -356,3 +356,58 @@ def test_window_poses_from_the_frames_around_them_equal_the_whole_takes(sigma):
         np.testing.assert_array_equal(t, t_all[s:e], err_msg=f"window {s}")
         spans.append(src._pose_span(s, e))
     assert max(hi - lo for lo, hi in spans) < 120          # read around each window, not the whole take
+
+
+def test_face_crops_are_cut_in_their_own_thread_and_the_buffers_come_back(monkeypatch):
+    """The report's face crops, cut beside detection (capture.run.stream.FaceCrops): each offered frame's crop is
+    the one FaceCrop.of cuts from it, its buffer goes back to the pool once cut, a frame never offered has none,
+    the export waits for a crop being cut, and a stopped run does not leave it waiting."""
+    import threading
+    import time
+
+    from capture.export import report_html as rh
+    from capture.io.video import FramePool
+    from capture.run.stream import FaceCrops, Pipeline, StageClock, _Stopped
+
+    rng = np.random.default_rng(3)
+    images = {i: rng.integers(0, 255, (480, 640, 3), dtype=np.uint8) for i in (3, 4, 5)}
+    points = {i: rng.uniform([200, 150], [420, 380], (68, 2)) for i in images}
+    expected = {i: rh.FaceCrop.of(images[i], points[i]) for i in images}
+    gate = threading.Event()
+    cut = rh.FaceCrop.of
+
+    def slow_of(image, pts):          # frame 5 is cut only when the gate opens
+        if image is images[5]:
+            gate.wait(5)
+        return cut(image, pts)
+
+    monkeypatch.setattr(rh.FaceCrop, "of", staticmethod(slow_of))
+    line = Pipeline()
+    pool = FramePool(cap=3, stop=line.stop)
+    crops = FaceCrops(line, pool, 3)
+    line.start("crop", crops.run, StageClock())
+    for i in images:
+        crops.offer(i, images[i], points[i])
+    crops.close()
+    for i in (3, 4):
+        got = crops.take(i)
+        assert got.box == expected[i].box and got.jpeg == expected[i].jpeg
+    assert crops.take(7) is None                                   # never offered
+    taken = []
+    waiter = threading.Thread(target=lambda: taken.append(crops.take(5)))
+    waiter.start()
+    time.sleep(0.3)
+    assert not taken and len(pool) == 2                            # 5 is being cut: the export waits
+    gate.set()
+    waiter.join(5)
+    assert taken[0].jpeg == expected[5].jpeg
+    line.close()
+    line.check()
+    assert len(pool) == 3 and {id(b) for b in pool._free} == {id(im) for im in images.values()}
+
+    line2 = Pipeline()                                             # stopped while a crop is pending
+    stuck = FaceCrops(line2, FramePool(cap=1, stop=line2.stop), 1)
+    stuck.offer(9, images[3], points[3])                           # no crop thread runs: it stays pending
+    threading.Timer(0.2, line2.stop.set).start()
+    with pytest.raises(_Stopped):
+        stuck.take(9)

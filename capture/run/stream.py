@@ -28,8 +28,8 @@ segments (:data:`DECODE_BUDGET_BYTES`) ahead of the detector, and where frames a
 segments in that budget (1080p), one segment is decoded and detected a piece of
 :data:`DECODE_PIECE_BYTES` at a time, the track carried from piece to piece. Frames are
 decoded into buffers that the detector gives back frame by frame as every lane moves past them
-(:class:`capture.io.video.FramePool`, at most :func:`pool_frames`: the largest group and one segment, so the
-decoder fills the next group with this group's frames; the buffers' pages are mapped in one call,
+(:class:`capture.io.video.FramePool`, at most :func:`pool_frames`: the largest group and a frame per lane, so
+the decoder fills the next group with this group's frames; the buffers' pages are mapped in one call,
 :func:`capture.io.heap.populated`; other large blocks are allocated off the heap, :mod:`capture.io.heap`).
 The fit process sends each frame's mesh as its map of the actor's features where it is one
 (``FrameFit.mesh_map``), and the fit thread makes the vertices (:class:`capture.fit.process.FitWorker`).
@@ -77,8 +77,8 @@ LANDMARK_QUEUE_FRAMES = 256    # landmarks waiting for the fit (a few KB each): 
                                # fit process imports torch and builds the actor's networks (~1.7 s)
 FIT_BACKLOG_FRAMES = 512       # rows sent to the fit process and not yet read by it (~11 KB each): when the
                                # fit or the export is slower than detection, detection waits (FitWorker.feed)
-DECODE_BUDGET_BYTES = 256 << 20  # decoded frames of one group of detection segments (at 720p two segments side by
-                                 # side: 128 MB, one at a time, held 340 MB less but made runs 5-20 % slower)
+DECODE_BUDGET_BYTES = 256 << 20  # decoded frames of one group of detection segments (at 720p three segments side
+                                 # by side: 254 MB; one at a time held 340 MB less but made runs 5-20 % slower)
 DECODE_PIECE_BYTES = 48 << 20    # a group of one segment (frames too large for two in the budget) is decoded
                                  # and detected this much at a time, its track carried over between pieces
 _END = object()
@@ -176,6 +176,59 @@ class Pipeline:
             t.join()
 
 
+class FaceCrops:
+    """The report's face crops (:class:`capture.export.report_html.FaceCrop`), cut in a thread of their own
+    from the frames detection is done with, which then go back to the frame pool.
+
+    Detection hands over a frame's buffer and landmarks (:meth:`offer`) instead of giving the buffer back; the
+    crop thread (:meth:`run`) cuts the crop and gives the buffer back; the export takes a frame's crop
+    (:meth:`take`), waiting while it is being cut. A crop costs 0.5-1 ms a 720p frame (a resize and a JPEG, which
+    let go of the GIL): in the detect thread, which sets the pace of a run, that was 0.8-1.3 s of a 1,200-frame
+    take's 10-11 s."""
+
+    def __init__(self, pipe_line: "Pipeline", pool, size: int):
+        self._pipe = pipe_line.pipe(max(1, size))
+        self._stop = pipe_line.stop
+        self._pool = pool
+        self._crops: dict[int, Any] = {}
+        self._pending: set[int] = set()
+        self._cond = threading.Condition()
+
+    def offer(self, frame: int, image: np.ndarray, points: np.ndarray) -> None:
+        """Detect thread: crop this frame, then give its buffer back to the pool."""
+        with self._cond:
+            self._pending.add(int(frame))
+        self._pipe.put((int(frame), image, points))
+
+    def close(self) -> None:
+        """Detect thread: no more frames."""
+        self._pipe.put(_END)
+
+    def run(self) -> None:
+        """The crop thread."""
+        from capture.export.report_html import FaceCrop
+
+        for frame, image, points in self._pipe:
+            try:
+                crop = FaceCrop.of(image, points)
+            finally:
+                self._pool.give([image])
+            with self._cond:
+                if crop is not None:       # no box: the report then reads that frame from the video
+                    self._crops[frame] = crop
+                self._pending.discard(frame)
+                self._cond.notify_all()
+
+    def take(self, frame: int):
+        """Export: the crop of ``frame`` (None when it has none), once it is cut."""
+        with self._cond:
+            while int(frame) in self._pending:
+                if self._stop.is_set():
+                    raise _Stopped
+                self._cond.wait(0.1)
+            return self._crops.pop(int(frame), None)
+
+
 # ------------------------------------------------------------------------------------ detection plan
 @dataclass
 class DetectPlan:
@@ -265,14 +318,16 @@ def decode_pieces(indices: list[int], piece: int) -> list[list[int]]:
 
 def pool_frames(plan: DetectPlan) -> int:
     """Frame buffers a streamed run decodes into (:class:`capture.io.video.FramePool`'s ``cap``): the largest
-    group (or piece) the detector holds, plus one segment (at most as many frames again) that the decoder may
-    fill ahead while the detector gives the group back frame by frame. The decoder, several times faster than
-    the detector, then has the next group decoded before the detector needs it; 1080p pieces keep their two
-    pieces."""
-    seg = max(plan.seg_len.values(), default=1)
+    group (or piece) the detector holds, plus one frame per lane. The detector gives a group back a frame per
+    lane at each step, and the decoder, faster than the detector, fills the next group into them: with the
+    lanes' frames to spare it has the next group decoded by the time the detector takes this group's last
+    step, so the detector waits no longer than with a segment to spare (the cap before, 29 frames more at
+    720p). Each buffer is memory touched for the first time: at 720p the 29 frames were 80 MB, and the run
+    1.0 s of system time longer (BENCHMARKS.md, "Streaming pipeline", twenty-first round)."""
     largest = max((min(sum(plan.seg_len[s] for s in g), plan.piece if len(g) == 1 else 1 << 30)
                    for g in plan.groups), default=1)
-    return max(1, largest + min(seg, largest))
+    lanes = max((len(g) for g in plan.groups), default=1)
+    return max(1, largest + lanes)
 
 
 def _frame_weights(points: np.ndarray, confidence: np.ndarray | None) -> np.ndarray:
@@ -312,7 +367,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     from capture.detector.runtime import Lane, TrackState
     from capture.export import EXPORTERS, open_exporters
     from capture.export.overlay_draw import confident_rms
-    from capture.export.report_html import FaceCrop, SeriesCollector, WorstFrameImages
+    from capture.export.report_html import SeriesCollector, WorstFrameImages
     from capture.fit.process import FitStopped, FitWorker
     from capture.run.checks import head_depth
     from capture.io.video import FramePool, VideoReader
@@ -348,26 +403,25 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     stage_dir.mkdir(parents=True, exist_ok=True)
 
     # decoded frames' buffers, given back frame by frame as detection moves past them (release): no page
-    # faults per frame, and one group and a segment of frames in all, not two groups (177 MB less at 720p)
+    # faults per frame, and one group and a frame per lane in all (pool_frames)
     pool = FramePool(cap=pool_frames(plan), stop=pipe_line.stop)
     want_images = any(EXPORTERS[f].needs_image for f in formats)
-    # the report's thumbnails of the worst frames: where no export reads the video's frames, detection keeps
-    # the face of every frame it detects, small, until the frame is exported (and its error known)
-    face_crops: dict[int, FaceCrop] = {}
+    # the report's thumbnails of the worst frames: where no export reads the video's frames, the face of every
+    # frame detected is kept, small, until the frame is exported (and its error known); cut in a thread of its own
+    crops = None if want_images else FaceCrops(pipe_line, pool, pool.cap)
     released: dict[int, int] = {}        # id(lane) -> its frames given back so far (release)
 
     def release(lanes) -> None:
-        """``Detector.run_lanes``' ``on_step``: the frames every lane has moved past go back to the pool (the
-        face of each kept first for the report, where no export reads the video's frames)."""
+        """``Detector.run_lanes``' ``on_step``: the frames every lane has moved past go back to the pool (through
+        the crop thread, which cuts the face of each for the report first, where no export reads the frames)."""
         for lane in lanes:
             for k in range(released.get(id(lane), 0), min(lane.pos, len(lane.results))):
                 image, r = lane.frames[k], lane.results[k]
-                if not want_images and r.frame_index in wanted and r.face_found:
-                    crop = FaceCrop.of(image, r.points)
-                    if crop is not None:       # no box (the report then reads that frame from the video)
-                        face_crops[int(r.frame_index)] = crop
                 lane.frames[k] = None
-                pool.give([image])
+                if crops is not None and r.frame_index in wanted and r.face_found:
+                    crops.offer(r.frame_index, image, r.points)
+                else:
+                    pool.give([image])
                 released[id(lane)] = k + 1
 
     def decode():
@@ -432,6 +486,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
             lost = next(i for i in plan.wanted if i not in have)
             raise CaptureError(f"video {Path(cfg.video).name} ends before frame {lost} (its header says "
                                f"{plan.info.frame_count} frames); request frames below {lost}")
+        if crops is not None:
+            crops.close()
         landmarks.put(_END)
 
     def rows():
@@ -526,6 +582,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
             reader = VideoReader(cfg.video) if want_images else None
             pipe_line.start("decode", decode, clocks["decode"])
             pipe_line.start("detect", detect, clocks["detect"])
+            if crops is not None:
+                pipe_line.start("crop", crops.run, StageClock())
             pipe_line.start("feed", feed, clocks["feed"])
             pipe_line.start("fit", fit, clocks["fit"])
             source = iter(reader.frames(plan.wanted)) if reader is not None else None
@@ -540,7 +598,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                     detection = detection_factory(_take_landmarks(unexported, int(ff.frame)))
                     writers.write(ff, image, detection)
                     series.add(ff, detection)    # the report's series, while the fit works on (not read back)
-                    face = image if image is not None else face_crops.pop(int(ff.frame), None)
+                    face = image if crops is None else crops.take(int(ff.frame))
                     error = confident_rms(ff, detection)
                     # what the report reads of each frame (capture.run.take.summarise_fit, check_head_depths),
                     # so that it does not read the fit back
