@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +103,34 @@ def test_populated_buffers_are_zeroed_and_writable():
     b = populated((3, 4), np.float64)
     b[:] = np.arange(12.0).reshape(3, 4)
     assert a.sum() == 9 * 105 and b[2, 3] == 11.0 and b.sum() == 66.0
+
+
+def _resident_pages(a: np.ndarray) -> tuple[int, int]:
+    """(resident, all) pages of ``a``'s mapping, by mincore(2)."""
+    import ctypes
+    import mmap
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    page = mmap.PAGESIZE
+    n = (a.nbytes + page - 1) // page
+    vec = (ctypes.c_ubyte * n)()
+    assert a.ctypes.data % page == 0
+    assert libc.mincore(ctypes.c_void_p(a.ctypes.data), ctypes.c_size_t(a.nbytes), vec) == 0, ctypes.get_errno()
+    return sum(v & 1 for v in vec), n
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="mincore and madvise are Linux's")
+@pytest.mark.parametrize("madvise", [True, False])
+def test_populated_buffers_have_their_pages_in_place_before_the_first_write(monkeypatch, madvise):
+    """A frame buffer's pages are mapped when it is made (no fault per 4 KB at the decoder's first write): by
+    madvise(MADV_POPULATE_WRITE), which lets go of the GIL, or where the kernel has none by MAP_POPULATE."""
+    from capture.io import heap
+
+    monkeypatch.setattr(heap, "_MADVISE", [] if madvise else [None])
+    a = heap.populated((720, 1280, 3), np.uint8)
+    resident, pages = _resident_pages(a)
+    assert pages >= 675 and resident == pages
+    assert not a.any()
 
 
 def test_reader_errors(tmp_path):
