@@ -78,7 +78,7 @@ LANDMARK_QUEUE_FRAMES = 256    # landmarks waiting for the fit (a few KB each): 
 FIT_BACKLOG_FRAMES = 512       # rows sent to the fit process and not yet read by it (~11 KB each): when the
                                # fit or the export is slower than detection, detection waits (FitWorker.feed)
 DECODE_BUDGET_BYTES = 256 << 20  # decoded frames of one group of detection segments (at 720p three segments side
-                                 # by side: 254 MB; one at a time held 340 MB less but made runs 5-20 % slower)
+                                 # by side: 265 MB; one at a time held 340 MB less but made runs 5-20 % slower)
 DECODE_PIECE_BYTES = 48 << 20    # a group of one segment (frames too large for two in the budget) is decoded
                                  # and detected this much at a time, its track carried over between pieces
 _END = object()
