@@ -6,6 +6,8 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
     decode thread   VideoReader: the frames of the detection segments not in the cache     -> (segment group, frames)
     detect thread   cached segments read, the others detected (Detector.run_lanes)         -> FrameLandmarks per frame
                     (these two set the pace: the fit yields them the CPU, capture.io.priority)
+    crop thread     where no export reads the video's frames: the face of each frame detection is done
+                    with, cut for report.html (FaceCrops), its buffer then given back to the decoder
     feed thread     the landmarks checked (capture.run.checks), their head pose by PnP
                     (capture.fit.init.PnPChain), sent to the fit process
     fit process     capture.fit.stream.fit_take_stream: each window solved as soon as      -> FrameFit per frame
@@ -18,7 +20,7 @@ the GIL: FFmpeg decoding, onnxruntime, file writes)::
                     frames are drawn by two threads of its own, capture.export.overlay) -> files;
                     the progress bar ("fit", as capture batch follows it) counts the frames written;
                     the images of the worst frames so far for report.html (report_html.WorstFrameImages):
-                    the overlay's frames, or else the face crops that detection cut from its frames
+                    the overlay's frames, or else the face crops of the crop thread
                     (report_html.FaceCrop, a JPEG of 5-25 KB a frame until exported): the video is decoded once
 
 Queues hold at most :data:`QUEUE_FRAMES` frames, the fit process at most :data:`FIT_BACKLOG_FRAMES` rows
