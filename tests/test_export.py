@@ -252,6 +252,7 @@ def test_npz_rows_spilled_in_blocks_equal_the_stacked_rows(tmp_path, take, monke
     from capture.fit.records import repeated_rows
 
     monkeypatch.setattr(params_module.SpilledRows, "BLOCK", 3)        # T frames in several blocks, the last short
+    monkeypatch.setattr(params_module._Coefficients, "BLOCK_FRAMES", 4)   # and the coefficients' one buffer reused
     rng = np.random.default_rng(5)
     fits, dets = [], []
     for j, (f, d) in enumerate(zip(take["fits"], take["dets"])):

@@ -143,7 +143,7 @@ def test_fields_written_frame_by_frame_read_back_as_stacked(tmp_path, monkeypatc
         assert a.status == b.status and a.reprojection_rms_px == b.reprojection_rms_px
 
 
-def test_meshes_stored_as_maps_come_back_to_the_bit_and_others_keep_their_vertices(tmp_path):
+def test_meshes_stored_as_maps_come_back_to_the_bit_and_others_keep_their_vertices(tmp_path, monkeypatch):
     """Fits whose vertices are their mesh map of the actor's features are stored without the vertices (the
     basis once beside the chunks) and read back equal to the bit, whole or by fields; a chunk with one fit
     whose vertices the map does not give (a blend of two fits, a retargeted mesh) keeps every vertex; a
@@ -186,6 +186,22 @@ def test_meshes_stored_as_maps_come_back_to_the_bit_and_others_keep_their_vertic
     assert "vertices.npy" in zipfile.ZipFile(tmp_path / "b" / "frames_000000.npz").namelist()
     for f, g in zip(blended, load_frame_fits(tmp_path / "b" / "frames_000000.npz", FrameFit)):
         np.testing.assert_array_equal(g.vertices, f.vertices)
+    # the caller that made the vertices from the maps (a streamed run) says so: stored as maps without making them
+    # again (spied), and read back to the bit; a fit without a map keeps the chunk's vertices all the same
+    import capture.run.store as store
+
+    made, check = [], store._maps_make_vertices
+    monkeypatch.setattr(store, "_maps_make_vertices", lambda f, b: made.append(len(f)) or check(f, b))
+    c = tmp_path / "c"
+    save_frame_fits(c / "frames_000000.npz", fits, basis, vertices_from_maps=True)
+    assert made == [] and "vertices.npy" not in zipfile.ZipFile(c / "frames_000000.npz").namelist()
+    for f, g in zip(fits, load_frame_fits(c / "frames_000000.npz", FrameFit)):
+        np.testing.assert_array_equal(g.vertices, f.vertices)
+    no_map = [fits[0], replace(fits[1], mesh_map=None)]
+    save_frame_fits(c / "frames_000006.npz", no_map, basis, vertices_from_maps=True)
+    assert "vertices.npy" in zipfile.ZipFile(c / "frames_000006.npz").namelist()
+    assert made == [2]                             # checked the usual way, and not all maps
+    monkeypatch.undo()
     # another actor's basis into the same folder is a bug, not a silent mix
     other = basis + 1
     assert not (a / "frames_000006.npz").exists()

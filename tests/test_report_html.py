@@ -205,6 +205,14 @@ def test_figures_drawn_in_their_own_process_are_the_same_bytes(method, monkeypat
         fp.submit(s)
         assert fp.result() == here
     assert fp._proc.exitcode == 0                  # it left cleanly when told to (report_figures._leave)
+    # matplotlib imported when asked (a streamed run asks when detection ends), or at the first series
+    for prepare in (True, False):
+        with FigureProcess(prepare_later=True) as fp:
+            if prepare:
+                fp.prepare()
+            fp.submit(s)
+            assert fp.result() == here
+        assert fp._proc.exitcode == 0
 
 
 def test_worst_frame_images_keeps_exactly_the_worst_frames():

@@ -380,6 +380,8 @@ def test_the_stream_gives_the_report_its_series_and_rows_as_it_exports(take, tmp
     events = []
     submit, close, read_back = rf.FigureProcess.submit, usd.UsdTakeWriter.close, stages.iter_fits
     monkeypatch.setattr(rf.FigureProcess, "submit", lambda self, s: (events.append(("submit", s)), submit(self, s))[1])
+    prepare = rf.FigureProcess.prepare
+    monkeypatch.setattr(rf.FigureProcess, "prepare", lambda self: (events.append(("prepare", None)), prepare(self))[1])
     monkeypatch.setattr(usd.UsdTakeWriter, "close", lambda self: (events.append(("close", None)), close(self))[1])
     spy = (lambda *a, **k: (events.append(("read", None)), read_back(*a, **k))[1])
     for module in (stages, take_module):
@@ -392,8 +394,9 @@ def test_the_stream_gives_the_report_its_series_and_rows_as_it_exports(take, tmp
     assert main(run_args(take_dir, actor, out, "--formats", "npz,usd")) == 0
     for module in (stages, take_module):
         monkeypatch.setattr(module, "iter_fits", read_back)
-    assert [e for e, _ in events] == ["submit", "close", "thumbnails"]
-    got = events[0][1]
+    # the figure process imports matplotlib once detection is done, then draws while the files are written
+    assert [e for e, _ in events] == ["prepare", "submit", "close", "thumbnails"]
+    got = events[1][1]
     report = json.loads((out / "report.json").read_text())
     errors = {r["frame"]: r["reprojection_rms_px"] for r in report["per_frame"]}
     assert sum(e is not None for e in errors.values()) >= N_FRAMES - 1
@@ -407,7 +410,7 @@ def test_the_stream_gives_the_report_its_series_and_rows_as_it_exports(take, tmp
     keys = ("frame", "status", "reprojection_rms_px", "reprojection_rms_all_px", "head_depth_mm")
     assert [{k: r.get(k) for k in keys} for r in report["per_frame"]] == [{k: r.get(k) for k in keys} for r in rows]
     assert sum("head_depth_mm" in r for r in rows) >= N_FRAMES - 1
-    worst, kept = events[2][1]
+    worst, kept = events[3][1]
     assert len(worst) == rh.WORST_FRAMES
     for i, f in fits_at(fit_dir, worst, THUMBNAIL_FIELDS).items():
         for k in THUMBNAIL_FIELDS:

@@ -69,6 +69,9 @@ class _Coefficients:
     is kept as its one row of E numbers, any other as float32 (L, E); both spilled as :class:`SpilledRows`."""
 
     dtype = np.dtype(np.float32)
+    #: frames per block of :meth:`blocks`, all in one buffer: ~360 KB at 468 landmarks and 24 expressions stays in
+    #: the cache and maps no fresh memory (a 256-frame block was 11.5 MB: 0.11 s to deflate 1,200 frames, now 0.07)
+    BLOCK_FRAMES = 8
 
     def __init__(self, spill_dir: Path):
         from array import array
@@ -101,16 +104,18 @@ class _Coefficients:
         return 2 not in self.kinds
 
     def blocks(self, tail=None):
-        """The (k, L, E) float32 blocks of the stacked rows (NaN for a frame without them)."""
+        """The (k, L, E) float32 blocks of the stacked rows (NaN for a frame without them), each written into the
+        same buffer: a block must be used before the next is asked for (as :func:`capture.io.arrays.write_npz`
+        does)."""
         shape = self.row_shape()
         one = (r for b in self._one.blocks(shape[1:]) for r in b)
         full = (r for b in self._full.blocks(shape) for r in b)
-        for k in range(0, len(self.kinds), SpilledRows.BLOCK):
-            kinds = self.kinds[k:k + SpilledRows.BLOCK]
-            out = np.full((len(kinds),) + shape, np.nan, np.float32)
+        buf = np.empty((self.BLOCK_FRAMES,) + tuple(shape), np.float32)
+        for k in range(0, len(self.kinds), self.BLOCK_FRAMES):
+            kinds = self.kinds[k:k + self.BLOCK_FRAMES]
+            out = buf[:len(kinds)]
             for i, kind in enumerate(kinds):
-                if kind:
-                    out[i] = next(one) if kind == 1 else next(full)
+                out[i] = np.nan if kind == 0 else next(one) if kind == 1 else next(full)
             yield out
 
     def close(self) -> None:

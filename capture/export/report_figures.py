@@ -5,7 +5,10 @@ another 0.5-0.7 s; in a run they came after the take, one after the other, besid
 thumbnails. :class:`FigureProcess` starts one process when the run starts (:data:`START_METHOD`), which
 imports matplotlib while the take is decoded, detected and fitted, and draws
 :func:`capture.export.report_html.figures` of the take's series when asked, while the run's process
-draws the thumbnails. The figures are the same bytes as drawn in the run's process (the same function
+draws the thumbnails. With ``FigureProcess(prepare_later=True)`` the import waits for
+:meth:`FigureProcess.prepare`: a streamed run calls it when detection ends, so that the import runs on the
+core that the fit's and the export's last frames leave idle, not beside the run's own start-up and the fit
+process's import of torch. The figures are the same bytes as drawn in the run's process (the same function
 on the same series; ``svg.hashsalt`` fixes the SVG ids). If the process is gone or fails, they are drawn
 in the run's process. It starts no thread in the run's process (the fit process is forked from it).
 """
@@ -24,7 +27,18 @@ START_METHOD = "fork" if sys.platform.startswith("linux") and "fork" in multipro
     else "spawn"
 
 
-def _serve(conn, parent_end=None) -> None:
+#: The message of :meth:`FigureProcess.prepare`: import matplotlib now.
+PREPARE = "prepare"
+
+
+def _import_pyplot() -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot  # noqa: F401
+
+
+def _serve(conn, parent_end=None, prepare_later: bool = False) -> None:
     import os
     import signal
 
@@ -32,10 +46,8 @@ def _serve(conn, parent_end=None) -> None:
     run = os.getppid()
     if parent_end is not None:     # forked: the run's end of the pipe is the run's alone, or this process would
         parent_end.close()         # never read the end of it when the run is killed (and keep its folder locked)
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot  # noqa: F401
+    if not prepare_later:
+        _import_pyplot()
 
     from capture.export.report_html import figures
 
@@ -51,6 +63,9 @@ def _serve(conn, parent_end=None) -> None:
             series = None
         if series is None:
             _leave()
+        if isinstance(series, str) and series == PREPARE:
+            _import_pyplot()       # once: a second import is a dictionary lookup
+            continue
         try:
             conn.send(("ok", figures(series)))
         except Exception as exc:  # handed to the run, which draws the figures itself
@@ -73,25 +88,37 @@ def _leave() -> None:
 
 class FigureProcess:
     """``FigureProcess()`` starts the process; :meth:`submit` a series, then :meth:`result`; :meth:`close` ends
-    it (always call it)."""
+    it (always call it). ``prepare_later``: the process imports matplotlib at :meth:`prepare` (or at the first
+    :meth:`submit`), not at once. The methods may be called from different threads."""
 
-    def __init__(self):
+    def __init__(self, prepare_later: bool = False):
+        import threading
+
         ctx = multiprocessing.get_context(START_METHOD)
         self._conn, child = ctx.Pipe()
-        args = (child, self._conn) if START_METHOD == "fork" else (child,)
+        args = (child, self._conn if START_METHOD == "fork" else None, prepare_later)
         self._proc = ctx.Process(target=_serve, args=args, name="capture-report-figures", daemon=True)
         self._proc.start()
         child.close()
         self._series, self._sent = None, False
+        self._send_lock = threading.Lock()
+
+    def _send(self, obj) -> bool:
+        with self._send_lock:
+            try:
+                self._conn.send(obj)
+                return True
+            except (OSError, ValueError):
+                return False
+
+    def prepare(self) -> None:
+        """Let the process import matplotlib now (``prepare_later``; otherwise it did at the start)."""
+        self._send(PREPARE)
 
     def submit(self, series) -> None:
         """Start drawing ``report_html.figures(series)`` in the process; :meth:`result` gives them."""
         self._series = series
-        try:
-            self._conn.send(series)
-            self._sent = True
-        except (OSError, ValueError):
-            self._sent = False
+        self._sent = self._send(series)
 
     def result(self) -> list[tuple[str, str]]:
         """The figures of the submitted series, drawn in the process (here, if it was not usable)."""
@@ -110,11 +137,9 @@ class FigureProcess:
         return figures(self._series)
 
     def close(self) -> None:
-        try:
-            self._conn.send(None)
-        except (OSError, ValueError):
-            pass
-        self._conn.close()
+        self._send(None)
+        with self._send_lock:
+            self._conn.close()
         self._proc.join(2.0)
         if self._proc.is_alive():
             self._proc.kill()

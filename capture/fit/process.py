@@ -432,9 +432,10 @@ class FitWorker:
         except (OSError, ValueError):
             pass
 
-    def results(self, stop: threading.Event | None = None) -> Iterator[tuple]:
+    def results(self, stop: threading.Event | None = None, make_vertices: bool = True) -> Iterator[tuple]:
         """Yield ``(FrameFit, rows_read)`` in frame order until the take ends; raises the fit's error,
-        or :class:`FitStopped` once ``stop`` is set."""
+        or :class:`FitStopped` once ``stop`` is set. A fit sent with its mesh map and without its vertices gets
+        them here (:func:`models.mesh_map.map_vertices` of :attr:`basis`), unless ``make_vertices`` is False."""
         while True:
             while not self._out.poll(0.1):
                 if stop is not None and stop.is_set():
@@ -454,7 +455,7 @@ class FitWorker:
             elif msg[0] == "fit":
                 self._heard(msg[2])
                 ff = msg[1]
-                if ff.vertices is None and ff.mesh_map is not None:
+                if make_vertices and ff.vertices is None and ff.mesh_map is not None:
                     ff.vertices = map_vertices(ff.mesh_map, self._basis)
                 yield ff, msg[2]
             elif msg[0] == "basis":

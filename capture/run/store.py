@@ -323,7 +323,8 @@ STACK_BYTES = 1 << 20   # a field of frame fits at least this large is written f
 MESH_BASIS = "mesh_basis.npy"   # a fit folder's (K, V) float32 basis of the frames' mesh maps
 
 
-def save_frame_fits(path: Path, fits: Sequence[Any], basis: np.ndarray | None = None) -> Path:
+def save_frame_fits(path: Path, fits: Sequence[Any], basis: np.ndarray | None = None,
+                    vertices_from_maps: bool = False) -> Path:
     """Stack the fields of dataclass frame fits into one NPZ (None -> NaN; strings as unicode arrays).
 
     A field whose every value is a :func:`capture.fit.records.repeated_rows` view (one row repeated: the
@@ -334,10 +335,11 @@ def save_frame_fits(path: Path, fits: Sequence[Any], basis: np.ndarray | None = 
     exactly :func:`models.mesh_map.map_vertices` of its ``mesh_map`` and this basis (checked frame by frame),
     the vertices are not stored (113 KB a frame at 9,409 vertices against the map's 960 bytes at 24
     expressions): the basis goes once into the folder (:data:`MESH_BASIS`) and :func:`load_frame_fits` makes
-    them again, to the bit."""
+    them again, to the bit. ``vertices_from_maps``: the caller made every fit's vertices that way (a streamed run
+    as it receives the fits' maps), so they are not made again to check it (0.2 ms a frame at 9,409 vertices)."""
     if not fits:
         raise ValueError("no frame fits to save")
-    drop = basis is not None and _maps_make_vertices(fits, basis)
+    drop = basis is not None and ((vertices_from_maps and _has_maps(fits, basis)) or _maps_make_vertices(fits, basis))
     if drop:
         _save_basis(Path(path).parent / MESH_BASIS, basis)
     arrays: dict[str, np.ndarray] = {}
@@ -366,16 +368,21 @@ def save_frame_fits(path: Path, fits: Sequence[Any], basis: np.ndarray | None = 
     return Path(path)
 
 
-def _maps_make_vertices(fits: Sequence[Any], basis: np.ndarray) -> bool:
-    """Does every fit's ``mesh_map`` give its ``vertices`` bit for bit (0.1 ms a frame)?"""
-    from models.mesh_map import map_vertices
-
+def _has_maps(fits: Sequence[Any], basis: np.ndarray) -> bool:
+    """Has every fit a float32 ``mesh_map`` of ``basis``'s features and ``vertices`` of its points?"""
     for f in fits:
         m, v = getattr(f, "mesh_map", None), getattr(f, "vertices", None)
         if m is None or v is None or m.dtype != np.float32 or m.shape != (3, basis.shape[0]) \
-                or v.shape != (basis.shape[1], 3) or not np.array_equal(map_vertices(m, basis), v):
+                or v.shape != (basis.shape[1], 3):
             return False
     return True
+
+
+def _maps_make_vertices(fits: Sequence[Any], basis: np.ndarray) -> bool:
+    """Does every fit's ``mesh_map`` give its ``vertices`` bit for bit (0.2 ms a frame at 9,409 vertices)?"""
+    from models.mesh_map import map_vertices
+
+    return _has_maps(fits, basis) and all(np.array_equal(map_vertices(f.mesh_map, basis), f.vertices) for f in fits)
 
 
 def _save_basis(path: Path, basis: np.ndarray) -> None:

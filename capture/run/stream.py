@@ -354,7 +354,8 @@ class StreamResult:
 
 def stream_take(inputs, out: Path, export_context, formats, export_key: Callable[[Any], dict],
                 detection_factory: Callable[[Any], Any], progress: bool = True,
-                on_exported: Callable[[Any, list], None] | None = None) -> StreamResult:
+                on_exported: Callable[[Any, list], None] | None = None,
+                on_detected: Callable[[], None] | None = None) -> StreamResult:
     """Run detect, fit and export of a take together (see the module docstring).
 
     ``export_key(track)`` gives the export's key once the take's landmarks are known;
@@ -363,6 +364,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     finish their files: the report's :class:`capture.export.report_html.SeriesCollector` (with the frames'
     detections) and :attr:`StreamResult.frames` (complete by then), so that the report's figures are drawn
     while the files are written.
+    ``on_detected()`` is called by the detect thread once the take's last landmarks are handed to the fit: from
+    then on a core is left for work that waits for the end (the report's figure process imports matplotlib).
     Returns the track, the finished fit folder and the stage log (detect, fit, export).
     """
     from capture.detector.pipeline import TrackBuilder, _segment_path, _write_segment, stack_frames
@@ -491,6 +494,8 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         if crops is not None:
             crops.close()
         landmarks.put(_END)
+        if on_detected is not None:
+            on_detected()
 
     def rows():
         """The fit's rows, with the plausibility check of capture.run.checks frame by frame."""
@@ -526,19 +531,26 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
             raise _Stopped from None
 
     def fit():
+        from models.mesh_map import map_vertices
+
         chunks: list[str] = []
         pending: list = []
+        mapped: list[bool] = []     # per pending fit: its vertices made here from its mesh map
         fitted: list[int] = []
 
         def flush():
             if pending:
                 name = f"frames_{int(pending[0].frame):06d}.npz"
-                save_frame_fits(stage_dir / name, pending, worker.basis)
+                save_frame_fits(stage_dir / name, pending, worker.basis, vertices_from_maps=all(mapped))
                 chunks.append(name)
                 pending.clear()
+                mapped.clear()
 
         try:
-            for ff, _ in worker.results(pipe_line.stop):
+            for ff, _ in worker.results(pipe_line.stop, make_vertices=False):
+                mapped.append(ff.vertices is None and ff.mesh_map is not None)
+                if mapped[-1]:
+                    ff.vertices = map_vertices(ff.mesh_map, worker.basis)
                 ff = replace(ff, frame=frame_map[int(ff.frame)])
                 pending.append(ff)
                 fitted.append(int(ff.frame))

@@ -133,7 +133,8 @@ def _run_take(cfg: RunConfig, t_start: float) -> dict:
         if cfg.side_processes:     # imports matplotlib while the take runs (capture.export.report_figures)
             from capture.export.report_figures import FigureProcess
 
-            figures = stack.enter_context(FigureProcess())
+            # its matplotlib imported when detection ends, on the core then left idle (stream_take's on_detected)
+            figures = stack.enter_context(FigureProcess(prepare_later=True))
         report = _run_in(folder, cfg, inputs, label, settings, fingerprints, t_start, figures)
     return report
 
@@ -187,7 +188,8 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
 
                 res = stream_take(inputs, out, replace(ctx, frame_count=streamed), cfg.formats, export_key,
                                   lambda r: Detection(r.points, r.confidence, bool(r.face_found)), cfg.progress,
-                                  on_exported=on_exported)
+                                  on_exported=on_exported,
+                                  on_detected=None if figure_process is None else figure_process.prepare)
                 log[:] = res.log
                 track, fit_dir, collector, worst_images = res.track, res.fit_dir, res.series, res.thumbnail_images
                 summaries, depths, worst_fits = res.frames, res.head_depths, res.worst_fits
@@ -195,6 +197,8 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
                 frames = fit_frames(fit_dir)
                 dets = detections_of(track)
             else:
+                if figure_process is not None:
+                    figure_process.prepare()
                 if not log:
                     detect_stage(inputs, out, log=log, progress=cfg.progress)
                 track = LandmarkTrack.load_npz(out / LANDMARKS)
