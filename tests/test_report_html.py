@@ -360,7 +360,7 @@ KILLED_RUN = """
 import sys, time
 import capture.export.report_figures as rf
 rf.START_METHOD = sys.argv[1]
-fp = rf.FigureProcess()
+fp = rf.FigureProcess(prepare_later=True)    # as capture run makes it: waiting, matplotlib not yet imported
 print(fp._proc.pid, flush=True)
 time.sleep(300)
 """
