@@ -184,11 +184,14 @@ class ModelEvidence:
     ``sigma_px``: predicted 1-sigma of where the model sends each pixel's ray
     (:func:`calib.uncertainty.pixel_uncertainty`); ``difference_px``: how far the model fitted to all
     views projects from the base model (OpenCV's default) fitted to the same views
-    (:func:`calib.uncertainty.projection_difference`; zeros for the base itself).
+    (:func:`calib.uncertainty.projection_difference`; zeros for the base itself). Both are in the camera's
+    fixed frame: :func:`choose_model`'s thresholds were set on them. ``difference_aligned_px`` is the same
+    difference up to the camera's rotation, what the report and its warnings show (:mod:`calib.uncertainty`).
     """
 
     sigma_px: np.ndarray = field(repr=False)
     difference_px: np.ndarray = field(repr=False)
+    difference_aligned_px: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def sigma_max_px(self) -> float:
@@ -197,6 +200,11 @@ class ModelEvidence:
     @property
     def difference_max_px(self) -> float:
         return float(np.max(self.difference_px))
+
+    @property
+    def difference_aligned_max_px(self) -> float:
+        d = self.difference_px if self.difference_aligned_px is None else self.difference_aligned_px
+        return float(np.max(d))
 
 
 def model_evidence(models: list[DistortionModel], solves: dict[str, Solve], obj: list[np.ndarray],
@@ -218,9 +226,11 @@ def model_evidence(models: list[DistortionModel], solves: dict[str, Solve], obj:
         s = solves[m.name]
         cov = intrinsic_covariance(cams[m.name], m, obj, img, s.rvecs, s.tvecs, fpp, far)
         sigma = pixel_uncertainty(cams[m.name], m, cov, grid, fpp, far)
-        diff = (projection_difference(cams[base.name], cams[m.name], grid) if base.name in cams and m != base
-                else np.zeros(len(grid)))
-        out[m.name] = ModelEvidence(sigma, diff)
+        compared = base.name in cams and m != base
+        diff = projection_difference(cams[base.name], cams[m.name], grid) if compared else np.zeros(len(grid))
+        aligned = (projection_difference(cams[base.name], cams[m.name], grid, align=True) if compared
+                   else np.zeros(len(grid)))
+        out[m.name] = ModelEvidence(sigma, diff, aligned)
     return out
 
 

@@ -6,6 +6,10 @@ pixels covering the whole image (:mod:`calib.uncertainty`):
 - the **predicted uncertainty** (1 sigma, px) from the intrinsic covariance,
 - the **hold-out spread**: how far each hold-out fold's camera (calibrated without some views)
   projects from the full camera, the largest over folds,
+
+both up to the camera's rotation (:mod:`calib.uncertainty`: the rotation of the camera frame that the
+views cannot pin, and that a take's solved head poses absorb, is not counted as error; the report
+also gives both without that rotation, as ``..._fixed_frame``),
 - the **coverage**: used corners per cell and the distance from each image corner to the data.
 
 It warns (and ``--strict`` fails) when the model extrapolates or is not determined:
@@ -40,14 +44,16 @@ CORNER_GAP_FRACTION = 0.08
 class Diagnostics:
     grid: np.ndarray  # (m, 2) pixels
     grid_shape: tuple[int, int]  # (nx, ny)
-    uncertainty_px: np.ndarray  # (m,) predicted 1-sigma
-    spread_px: np.ndarray  # (m,) hold-out spread (0 when there were no fold cameras)
+    uncertainty_px: np.ndarray  # (m,) predicted 1-sigma, up to the camera's rotation
+    spread_px: np.ndarray  # (m,) hold-out spread up to the camera's rotation (0 when there were no fold cameras)
     covariance: Covariance
     coverage: Coverage
     term_effects_px: dict[str, float]
     tolerance_px: float
     warnings: list[str] = field(default_factory=list)
     image_size: tuple[int, int] = (0, 0)
+    uncertainty_fixed_frame_max_px: float = 0.0  # the same two without the implied rotation, for reference
+    spread_fixed_frame_max_px: float = 0.0
 
     def _at(self, values: np.ndarray) -> list[float]:
         return [float(v) for v in self.grid[int(np.argmax(values))]]
@@ -83,10 +89,12 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
     fpp, far = options.fix_principal_point, options.fix_aspect_ratio
     cov = intrinsic_covariance(camera, result.model, result.object_points, result.image_points,
                                result.rvecs, result.tvecs, fpp, far)
-    sigma = pixel_uncertainty(camera, result.model, cov, grid, fpp, far)
+    sigma = pixel_uncertainty(camera, result.model, cov, grid, fpp, far, modulo_rotation=True)
+    sigma_fixed = pixel_uncertainty(camera, result.model, cov, grid, fpp, far)
     folds = result.holdout.fold_cameras if result.holdout else []
-    spread = (np.max([projection_difference(camera, c, grid) for c in folds], axis=0)
+    spread = (np.max([projection_difference(camera, c, grid, align=True) for c in folds], axis=0)
               if folds else np.zeros(len(grid)))
+    spread_fixed = max((float(projection_difference(camera, c, grid).max()) for c in folds), default=0.0)
     cov_map = coverage(result.image_points, (w, h))
     effects = term_effects_px(camera, result.model, cov, fpp, far)
 
@@ -128,13 +136,14 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
             f"hold-out check: leaving views out moves the model by up to {spread.max():.2f} px at "
             f"({at[0]:.0f}, {at[1]:.0f}), above the {tolerance_px:g} px tolerance; record more views"
         )
-    return Diagnostics(grid, shape, sigma, spread, cov, cov_map, effects, tolerance_px, warnings, (w, h))
+    return Diagnostics(grid, shape, sigma, spread, cov, cov_map, effects, tolerance_px, warnings, (w, h),
+                       float(sigma_fixed.max()), spread_fixed)
 
 
 def _rival_model(result, tolerance_px: float, holdout_tolerance: float = 0.05) -> tuple[str, float] | None:
     """The non-rational candidate that predicts the left-out views within 5 % as well as the chosen model
     and differs most from it over the image, if by more than ``tolerance_px`` (differences are measured
-    against OpenCV's default model, :class:`calib.calibrate.ModelEvidence`)."""
+    against OpenCV's default model up to the camera's rotation, :class:`calib.calibrate.ModelEvidence`)."""
     from calib.models import OPENCV_DEFAULT
 
     evidence, scores, chosen = result.model_evidence, result.model_scores, result.model.name
@@ -142,9 +151,9 @@ def _rival_model(result, tolerance_px: float, holdout_tolerance: float = 0.05) -
         return None
     limit = scores[chosen] * (1.0 + holdout_tolerance)
     if chosen != OPENCV_DEFAULT.name:
-        rivals = {OPENCV_DEFAULT.name: evidence[chosen].difference_max_px}
+        rivals = {OPENCV_DEFAULT.name: evidence[chosen].difference_aligned_max_px}
     else:
-        rivals = {n: e.difference_max_px for n, e in evidence.items() if n != chosen and "k6" not in n}
+        rivals = {n: e.difference_aligned_max_px for n, e in evidence.items() if n != chosen and "k6" not in n}
     rivals = {n: d for n, d in rivals.items() if scores.get(n, np.inf) <= limit and d > tolerance_px}
     if not rivals:
         return None

@@ -288,16 +288,22 @@ def _report(settings, board, footage, examined, used, dropped, result, camera, c
         "model": result.model.name,
         "model_holdout_rms_px": result.model_scores,
         "model_predicted_uncertainty_max_px": {k: e.sigma_max_px for k, e in result.model_evidence.items()},
-        "model_difference_from_default_max_px": {k: e.difference_max_px for k, e in result.model_evidence.items()},
-        "model_note": "hold-out RMS (px), largest predicted 1-sigma over the image and largest distance from "
-                      "OpenCV's default model (k1-k3+p) of each candidate lens model; OpenCV's default is used "
-                      "unless a richer model predicts the left-out views 3 % better, or its own extra terms are "
-                      "not determined (predicted uncertainty 3.5x a simpler model's, which agrees with it)",
+        "model_difference_from_default_max_px": {k: e.difference_aligned_max_px
+                                                 for k, e in result.model_evidence.items()},
+        "model_note": "hold-out RMS (px), largest predicted 1-sigma over the image (in the camera's fixed frame, "
+                      "as the choice uses it) and largest distance from OpenCV's default model (k1-k3+p, up to the "
+                      "camera's rotation) of each candidate lens model; OpenCV's default is used unless a richer "
+                      "model predicts the left-out views 3 % better, or its own extra terms are not determined "
+                      "(predicted uncertainty 3.5x a simpler model's, which agrees with it)",
         "holdout": {"folds": result.holdout.folds, "rms_px": result.holdout.rms_px,
-                    "spread_max_px": diag.spread_max_px, "spread_at_px": diag.spread_at},
+                    "spread_max_px": diag.spread_max_px, "spread_at_px": diag.spread_at,
+                    "spread_fixed_frame_max_px": diag.spread_fixed_frame_max_px},
         "uncertainty": {"max_px": diag.uncertainty_max_px, "at_px": diag.uncertainty_at,
                         "median_px": diag.uncertainty_median_px, "residual_sigma_px": diag.covariance.sigma_px,
-                        "note": "1-sigma of where the model sends a ray, from the parameter covariance"},
+                        "fixed_frame_max_px": diag.uncertainty_fixed_frame_max_px,
+                        "note": "1-sigma of where the model sends a ray, from the parameter covariance, up to the "
+                                "rotation of the camera frame that the views cannot pin (a take's head poses absorb "
+                                "it); fixed_frame_max_px counts that rotation too"},
         "distortion_term_effect_px": diag.term_effects_px,
         "coverage": coverage,
         "coverage_note": "fraction of a 16-column grid over the image holding at least one used corner",

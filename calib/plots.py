@@ -70,7 +70,7 @@ def save_calibration_plot(
 def save_coverage_plot(path: str | os.PathLike, diag, view_points: list[np.ndarray], title: str = "") -> Path:
     """Write a PNG of what the calibration knows where (``diag``: a :class:`calib.diagnostics.Diagnostics`):
     left, used corners per cell as a heat map (white: no corner); middle, the predicted 1-sigma pixel
-    uncertainty; right, the hold-out spread. The middle and right panels share a colour scale in px,
+    uncertainty; right, the hold-out spread (both up to the camera's rotation, :mod:`calib.uncertainty`). The middle and right panels share a colour scale in px,
     with the ``tolerance_px`` contour drawn; black dots are the used corners."""
     import matplotlib
 
@@ -91,8 +91,8 @@ def save_coverage_plot(path: str | os.PathLike, diag, view_points: list[np.ndarr
                       f"{diag.coverage.reach_px:.0f} px of a corner\nimage-corner gaps TL, TR, BL, BR: {gaps} px",
                       fontsize=9)
     vmax = max(diag.tolerance_px, float(diag.uncertainty_px.max()), float(diag.spread_px.max()))
-    for ax, values, name in ((axes[1], diag.uncertainty_px, "predicted uncertainty (1 sigma)"),
-                             (axes[2], diag.spread_px, "hold-out spread (max over folds)")):
+    for ax, values, name in ((axes[1], diag.uncertainty_px, "predicted uncertainty (1 sigma, up to rotation)"),
+                             (axes[2], diag.spread_px, "hold-out spread (max over folds, up to rotation)")):
         img = values.reshape(ny, nx)
         im = ax.imshow(img, extent=(-0.5, w - 0.5, h - 0.5, -0.5), cmap="viridis", vmin=0, vmax=vmax,
                        interpolation="bilinear")

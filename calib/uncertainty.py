@@ -13,6 +13,18 @@ Pure math on a calibration's corners, poses and cameras (no files). Conventions 
 - :func:`projection_difference` compares two cameras over the image: ``|pi_b(pi_a^-1(u)) - u|``, where a
   ray seen at pixel u by camera a lands with camera b (the whole-image model error when a is the truth,
   the hold-out spread when b is a fold camera).
+
+**Up to the camera's rotation** (``align=True``, ``modulo_rotation=True``). A calibration fixes the
+camera's axes only through its own board poses, so its intrinsics come with a small rotation of the
+camera frame that the same views cannot tell apart: a shift of the principal point with all board
+poses turned to match fits the corners almost as well. No use of a calibration that also solves the
+pose of what it films (the head pose of every frame of a take) can see that rotation. So the
+differences that matter are those left after the rotation of the rays that best aligns the two
+cameras over the compared pixels: :func:`implied_rotation`, by least squares in pixels. This is how
+mrcal compares two lens models and states a model's uncertainty ("projection diff" with the implied
+transformation, at infinite range). :func:`pixel_uncertainty` with ``modulo_rotation`` removes from
+every intrinsic direction the pixel motion that a rotation of the rays reproduces (the least-squares
+fit over the same pixels, linearised); the remainder is what such a camera error does to the image.
 - :func:`coverage` counts used corners per cell and how far each part of the image is from the data.
 """
 
@@ -60,11 +72,43 @@ def project_rays(camera: Camera, rays: np.ndarray) -> np.ndarray:
     return uv.reshape(-1, 2)
 
 
-def projection_difference(reference: Camera, other: Camera, pixels: np.ndarray) -> np.ndarray:
-    """(m,) px: where ``other`` projects the rays ``reference`` sees at ``pixels``, minus ``pixels``."""
+def _rotated(rays: np.ndarray, rvec: np.ndarray) -> np.ndarray:
+    """Normalised rays (m, 2) turned by the rotation vector ``rvec`` (3,), again as (x/z, y/z)."""
+    import cv2
+
+    v = np.column_stack([rays, np.ones(len(rays))]) @ cv2.Rodrigues(np.asarray(rvec, np.float64))[0].T
+    return v[:, :2] / v[:, 2:]
+
+
+def implied_rotation(reference: Camera, other: Camera, pixels: np.ndarray) -> np.ndarray:
+    """(3,) rotation vector R that best aligns the cameras over ``pixels`` (m, 2): it minimises
+    ``sum |pi_other(R pi_reference^-1(u)) - u|^2`` (px^2) by ``scipy.optimize.least_squares``.
+
+    Rotations here are a fraction of a degree (calibration noise), so starting at zero converges.
+    """
+    from scipy.optimize import least_squares
+
+    rays = rays_of(reference, pixels)
+    pixels = np.asarray(pixels, np.float64)
+
+    def residual(rvec: np.ndarray) -> np.ndarray:
+        return (project_rays(other, _rotated(rays, rvec)) - pixels).ravel()
+
+    return least_squares(residual, np.zeros(3), method="lm", xtol=1e-12, ftol=1e-12).x
+
+
+def projection_difference(reference: Camera, other: Camera, pixels: np.ndarray, align: bool = False) -> np.ndarray:
+    """(m,) px: where ``other`` projects the rays ``reference`` sees at ``pixels``, minus ``pixels``.
+
+    With ``align`` the rays are first turned by :func:`implied_rotation` over the same pixels, so the
+    difference is that left up to the camera's rotation (module docstring).
+    """
     if tuple(reference.image_size) != tuple(other.image_size):
         raise ValueError(f"cameras of different image sizes {reference.image_size} and {other.image_size}")
-    return np.linalg.norm(project_rays(other, rays_of(reference, pixels)) - pixels, axis=1)
+    rays = rays_of(reference, pixels)
+    if align:
+        rays = _rotated(rays, implied_rotation(reference, other, pixels))
+    return np.linalg.norm(project_rays(other, rays) - pixels, axis=1)
 
 
 # ------------------------------------------------------------------------------------------ covariance
@@ -134,8 +178,10 @@ def intrinsic_covariance(camera: Camera, model: DistortionModel, object_points: 
 
 
 def pixel_uncertainty(camera: Camera, model: DistortionModel, cov: Covariance, pixels: np.ndarray,
-                      fix_principal_point: bool = False, fix_aspect_ratio: bool = False) -> np.ndarray:
-    """(m,) px: 1-sigma of where the model sends the ray seen at each of ``pixels`` (module docstring)."""
+                      fix_principal_point: bool = False, fix_aspect_ratio: bool = False,
+                      modulo_rotation: bool = False) -> np.ndarray:
+    """(m,) px: 1-sigma of where the model sends the ray seen at each of ``pixels`` (module docstring);
+    with ``modulo_rotation``, of what is left after the rotation that best aligns ``pixels`` as a whole."""
     import cv2
 
     dist = np.zeros(model.n_dist)
@@ -146,6 +192,9 @@ def pixel_uncertainty(camera: Camera, model: DistortionModel, cov: Covariance, p
     J, names = _intrinsic_columns(jac, camera, model, fix_principal_point, fix_aspect_ratio)
     if names != cov.names:
         raise ValueError(f"covariance of {cov.names} does not match the model's intrinsics {names}")
+    if modulo_rotation:
+        G = jac[:, :3]  # (2m, 3) pixel motion per rotation of the rays (rvec at zero)
+        J = J - G @ np.linalg.lstsq(G, J, rcond=None)[0]
     var = np.einsum("ip,pq,iq->i", J, cov.matrix, J).reshape(-1, 2).sum(1)
     return np.sqrt(np.maximum(var, 0.0))
 
