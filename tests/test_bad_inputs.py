@@ -837,6 +837,40 @@ def test_a_second_run_on_the_same_out_fails_at_once(env, tmp_path, capsys):
     OutLock(out).acquire().release()   # the lock goes with its holder
 
 
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_a_forked_child_does_not_keep_a_killed_runs_lock(tmp_path):
+    """A run killed with -9 while its forked fit or figure process winds down: the next run gets the folder at
+    once. (The child shared the lock's open file description; flock held until it exited too.)"""
+    from capture.io.outdir import OutLock
+
+    script = (
+        "import multiprocessing as mp, sys, time\n"
+        "from capture.io.outdir import OutLock\n"
+        "OutLock(sys.argv[1]).acquire()\n"
+        "child = mp.get_context('fork').Process(target=time.sleep, args=(60,), daemon=True)\n"
+        "child.start()\n"
+        "print(child.pid, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    pyenv = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.Popen([sys.executable, "-c", script, str(tmp_path)], stdout=subprocess.PIPE, text=True,
+                            env=pyenv)
+    child = 0
+    try:
+        child = int(proc.stdout.readline())
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        os.kill(child, 0)  # the child still lives (it sleeps for a minute) ...
+        OutLock(tmp_path).acquire().release()  # ... and the folder is free
+    finally:
+        proc.kill()
+        if child:
+            try:
+                os.kill(child, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
 @pytest.mark.parametrize("err", ["ENOSPC", "EROFS", "EACCES"])
 def test_disk_full_or_read_only_is_one_line(env, tmp_path, monkeypatch, capsys, err):
     import errno

@@ -4,7 +4,8 @@
   into one line each.
 * :class:`OutLock` is an exclusive ``flock`` on ``OUT/.capture.lock``: a second run on the same folder
   fails at once with one line naming the first one's process. The kernel drops the lock when its
-  process ends, however it ends (``kill -9`` included), so a stale lock file never blocks a later run.
+  process ends, however it ends (``kill -9`` included), so a stale lock file never blocks a later run;
+  forked children (the fit and figure processes) do not keep it, even while they wind down after a kill.
 * :func:`check_no_links` refuses a run folder whose entries are symbolic links: nothing is written
   through a link to outside ``--out``.
 * :func:`clean_temp_files` removes the temporary siblings of atomic writes that a killed run left
@@ -23,6 +24,25 @@ from capture.io.atomic import is_temp_name
 from capture.io.errors import CaptureError
 
 LOCK_NAME = ".capture.lock"
+
+#: Lock files this process holds. A forked child (the fit or figure process) shares the parent's open file
+#: description of each; ``flock`` is released only when every descriptor of it is closed, so a child that
+#: outlives a killed run would keep the folder locked. Children close their copies at once (closing, not
+#: unlocking: unlocking would release the parent's lock too).
+_HELD_FDS: set[int] = set()
+
+
+def _close_held_in_child() -> None:
+    for fd in list(_HELD_FDS):
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _HELD_FDS.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_close_held_in_child)
 
 
 def make_out_dir(out: Path, flag: str = "--out") -> Path:
@@ -81,10 +101,12 @@ class OutLock:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         self._fd = fd
+        _HELD_FDS.add(fd)
         return self
 
     def release(self) -> None:
         if self._fd is not None:
+            _HELD_FDS.discard(self._fd)
             fcntl.flock(self._fd, fcntl.LOCK_UN)
             os.close(self._fd)
             self._fd = None
