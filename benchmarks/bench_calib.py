@@ -205,8 +205,8 @@ def cases(quick: bool, seeds: int, views=VIEWS, first_seed: int = 0) -> list[Cas
 def _print_row(r: dict) -> None:
     print(f"{r['lens']:6s} {r['condition']:5s} {r['views']:3d} views seed {r['seed']}: ours max {r['ours_max_px']:6.3f} "
           f"mean {r['ours_mean_px']:.3f} px ({r['ours_views']} views, {r['model']}) | plain max "
-          f"{r['plain_max_px']:6.3f} mean {r['plain_mean_px']:.3f} px ({r['plain_views']} views) | up to rotation: ours "
-          f"max {r['ours_max_aligned_px']:.3f}, plain max {r['plain_max_aligned_px']:.3f} px | "
+          f"{r['plain_max_px']:6.3f} mean {r['plain_mean_px']:.3f} px ({r['plain_views']} views) | "
+          f"up to rotation: ours max {r['ours_max_aligned_px']:.3f}, plain max {r['plain_max_aligned_px']:.3f} px | "
           f"{len(r['warnings'])} warnings | {r['ours_s']:.1f} s", flush=True)
 
 
@@ -243,7 +243,8 @@ def markdown_table(rows: list[dict], aligned: bool = False) -> str:
         out.append(
             f"| {lens} | {cond} | {views} | {ours} | {plain} | "
             f"{max(r[f'ours_max{m}_px'] - r[f'plain_max{m}_px'] for r in rs):+.2f} | "
-            f"{np.mean([r[f'ours_mean{m}_px'] for r in rs]):.2f} | {np.mean([r[f'plain_mean{m}_px'] for r in rs]):.2f} | "
+            f"{np.mean([r[f'ours_mean{m}_px'] for r in rs]):.2f} | "
+            f"{np.mean([r[f'plain_mean{m}_px'] for r in rs]):.2f} | "
             f"{sum(r[f'ours_max{m}_px'] <= 1 for r in rs)}/{len(rs)} | "
             f"{sum(r[f'plain_max{m}_px'] <= 1 for r in rs)}/{len(rs)} | "
             f"{sum(bool(r['warnings']) for r in rs)}/{len(rs)} | {', '.join(sorted(set(r['model'] for r in rs)))} |")

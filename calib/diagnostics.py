@@ -6,11 +6,11 @@ pixels covering the whole image (:mod:`calib.uncertainty`):
 - the **predicted uncertainty** (1 sigma, px) from the intrinsic covariance,
 - the **hold-out spread**: how far each hold-out fold's camera (calibrated without some views)
   projects from the full camera, the largest over folds,
-
-both up to the camera's rotation (:mod:`calib.uncertainty`: the rotation of the camera frame that the
-views cannot pin, and that a take's solved head poses absorb, is not counted as error; the report
-also gives both without that rotation, as ``..._fixed_frame``),
 - the **coverage**: used corners per cell and the distance from each image corner to the data.
+
+The uncertainty and the spread are measured up to the camera's rotation (:mod:`calib.uncertainty`: the
+rotation of the camera frame that the views cannot pin, and that a take's solved head poses absorb, is
+not counted as error); the report also gives their largest values without it (``..._fixed_frame``).
 
 It warns (and ``--strict`` fails) when the model extrapolates or is not determined:
 

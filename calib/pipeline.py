@@ -339,8 +339,8 @@ def _print_summary(settings, camera, result, used, dropped, coverage, diag, repo
         f"  lens model {result.model.name} (hold-out: "
         + ", ".join(f"{k} {v:.3f}" for k, v in result.model_scores.items()) + " px)",
         "  dist " + " ".join(f"{v:+.5f}" for v in camera.dist),
-        f"  uncertainty over the image, up to the camera's rotation: median {diag.uncertainty_median_px:.2f} px, max "
-        f"{diag.uncertainty_max_px:.2f} px; leaving views out moves it by up to {diag.spread_max_px:.2f} px",
+        f"  uncertainty over the image, up to the camera's rotation: median {diag.uncertainty_median_px:.2f} px, "
+        f"max {diag.uncertainty_max_px:.2f} px; leaving views out moves it by up to {diag.spread_max_px:.2f} px",
         f"  views used: {', '.join(c.label for c in used)}",
         f"  dropped: {_summary(reasons)}",
     ]

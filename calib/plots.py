@@ -70,8 +70,9 @@ def save_calibration_plot(
 def save_coverage_plot(path: str | os.PathLike, diag, view_points: list[np.ndarray], title: str = "") -> Path:
     """Write a PNG of what the calibration knows where (``diag``: a :class:`calib.diagnostics.Diagnostics`):
     left, used corners per cell as a heat map (white: no corner); middle, the predicted 1-sigma pixel
-    uncertainty; right, the hold-out spread (both up to the camera's rotation, :mod:`calib.uncertainty`). The middle and right panels share a colour scale in px,
-    with the ``tolerance_px`` contour drawn; black dots are the used corners."""
+    uncertainty; right, the hold-out spread (both up to the camera's rotation, :mod:`calib.uncertainty`).
+    The middle and right panels share a colour scale in px, with the ``tolerance_px`` contour drawn; black
+    dots are the used corners."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)

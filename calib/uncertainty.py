@@ -13,6 +13,7 @@ Pure math on a calibration's corners, poses and cameras (no files). Conventions 
 - :func:`projection_difference` compares two cameras over the image: ``|pi_b(pi_a^-1(u)) - u|``, where a
   ray seen at pixel u by camera a lands with camera b (the whole-image model error when a is the truth,
   the hold-out spread when b is a fold camera).
+- :func:`coverage` counts used corners per cell and how far each part of the image is from the data.
 
 **Up to the camera's rotation** (``align=True``, ``modulo_rotation=True``). A calibration fixes the
 camera's axes only through its own board poses, so its intrinsics come with a small rotation of the
@@ -25,7 +26,6 @@ mrcal compares two lens models and states a model's uncertainty ("projection dif
 transformation, at infinite range). :func:`pixel_uncertainty` with ``modulo_rotation`` removes from
 every intrinsic direction the pixel motion that a rotation of the rays reproduces (the least-squares
 fit over the same pixels, linearised); the remainder is what such a camera error does to the image.
-- :func:`coverage` counts used corners per cell and how far each part of the image is from the data.
 """
 
 from __future__ import annotations
