@@ -287,6 +287,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--table", type=Path, help="only print the table of a results JSON written before")
     ap.add_argument("--before", type=Path, help="with --table: an earlier results JSON to show beside it")
+    ap.add_argument("--aligned", action="store_true", help="with --table: the errors up to the camera's rotation")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--lenses", default="weak,strong")
     ap.add_argument("--views", default=",".join(map(str, VIEWS)))
@@ -303,7 +304,7 @@ def main(argv: list[str] | None = None) -> dict:
         if args.before:
             print(before_after_table(json.loads(args.before.read_text())["rows"], res["rows"]))
         else:
-            print(markdown_table(res["rows"]))
+            print(markdown_table(res["rows"], aligned=args.aligned))
         return res
     cv2.setNumThreads(1)
     rows = []
