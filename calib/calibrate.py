@@ -191,7 +191,7 @@ class ModelEvidence:
 
     sigma_px: np.ndarray = field(repr=False)
     difference_px: np.ndarray = field(repr=False)
-    difference_aligned_px: np.ndarray | None = field(default=None, repr=False)
+    difference_aligned_px: np.ndarray = field(repr=False)
 
     @property
     def sigma_max_px(self) -> float:
@@ -203,8 +203,7 @@ class ModelEvidence:
 
     @property
     def difference_aligned_max_px(self) -> float:
-        d = self.difference_px if self.difference_aligned_px is None else self.difference_aligned_px
-        return float(np.max(d))
+        return float(np.max(self.difference_aligned_px))
 
 
 def model_evidence(models: list[DistortionModel], solves: dict[str, Solve], obj: list[np.ndarray],
