@@ -214,7 +214,8 @@ def test_centroid_detector_end_to_end_with_alignment(tmp_path, layout):
 def test_preprocess_in_kept_buffers_gives_the_same_batches():
     """preprocess with buffers kept between calls gives, value for value, the batch of the readable formula
     ((x * scale - mean) / std, then the layout), for every colour, layout and dtype; the float batch is
-    computed in the same arrays call after call (same shape), and a new shape gets new ones."""
+    computed in the same arrays call after call (same shape), and a new shape gets new ones. A float16 batch is
+    the float32 one rounded once (normalising in float16 would round at every operation)."""
     from dataclasses import replace
 
     from capture.detector.crop import Crop
@@ -225,7 +226,7 @@ def test_preprocess_in_kept_buffers_gives_the_same_batches():
     frames = [rng.integers(0, 256, (120, 160, 3), dtype=np.uint8) for _ in range(3)]
     crops = [Crop(80.0 + 5 * i, 60.0 - 3 * i, 90.0 + 10 * i, 7.0 * i) for i in range(3)]
     for color, layout, dtype in [("RGB", "NCHW", "float32"), ("BGR", "NHWC", "float32"), ("GRAY", "NCHW", "float32"),
-                                 ("RGB", "NCHW", "uint8")]:
+                                 ("RGB", "NCHW", "uint8"), ("BGR", "NCHW", "float16"), ("RGB", "NHWC", "float16")]:
         C = 1 if color == "GRAY" else 3
         inp = InputSpec("image", layout, (48, 40), color, dtype, 1 / 255, (0.485, 0.456, 0.406)[:C],
                         (0.229, 0.224, 0.225)[:C])
@@ -235,9 +236,9 @@ def test_preprocess_in_kept_buffers_gives_the_same_batches():
             got = preprocess(frames[:n], crops[:n], inp, buffers)
             u8 = preprocess(frames[:n], crops[:n], replace(inp, dtype="uint8", layout="NHWC"))
             ref = u8
-            if dtype == "float32":
-                ref = (u8.astype(np.float32) * np.float32(inp.scale) - np.asarray(inp.mean, np.float32)) \
-                    / np.asarray(inp.std, np.float32)
+            if dtype != "uint8":    # float16: normalised in float32, then rounded once
+                ref = ((u8.astype(np.float32) * np.float32(inp.scale) - np.asarray(inp.mean, np.float32))
+                       / np.asarray(inp.std, np.float32)).astype(dtype)
             if layout == "NCHW":
                 ref = ref.transpose(0, 3, 1, 2)
             assert got.dtype == ref.dtype and got.flags.c_contiguous

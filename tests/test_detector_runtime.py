@@ -89,6 +89,19 @@ def test_query_detector(tmp_path):
         det.run_crops([np.zeros((300, 400, 3), np.uint8)], [crop], [0], query_points=q[:2])
 
 
+def test_query_detector_in_half_precision(tmp_path):
+    """A query model exported in float16 takes the template points in float16: they reach it rounded to
+    float16 (the nearest of 2^-11 relative: 0.03 px at 60 px) and come back as the float32 twin's do."""
+    q = np.array([[5.0, 7.0, 100.0], [50.25, 12.5, -3.0], [31.5, 60.1, 0.0]], np.float32)
+    spec = S.detector_spec(kind="query", query={"name": "points"}, dtype="float16")
+    det = Detector.load(S.save_detector(S.query_model(3, dtype="float16"), spec, tmp_path))
+    crop = Crop(200.0, 150.0, 64.0, 0.0)
+    r = det.run_crops([np.zeros((300, 400, 3), np.uint8)], [crop], [0], query_points=q)[0]
+    np.testing.assert_allclose(r.points, input_to_frame(q[:, :2].astype(np.float16).astype(np.float64), crop, SIZE),
+                               atol=1e-5)
+    assert np.abs(r.points - input_to_frame(q[:, :2], crop, SIZE)).max() > 1e-3     # 60.1 is not a float16
+
+
 @pytest.mark.parametrize("batch", [1, 4])
 def test_fixed_batch_models(tmp_path, batch):
     spec = S.detector_spec(first_frame="full_frame", track=False)

@@ -72,7 +72,43 @@ def test_uint8_model_loads_and_runs(tmp_path):
     spec = S.detector_spec(dtype="uint8")
     spec["input"]["scale"] = 0.5
     msg = _error(tmp_path, S.constant_model(PTS, dtype="uint8"), spec)
-    assert "input.dtype is \"uint8\"; expected float32 when scale/mean/std are given" in msg
+    assert "input.dtype is \"uint8\"; expected float32 or float16 when scale/mean/std are given" in msg
+
+
+def _mean_shift_model(dtype: str):
+    """Landmarks PTS + the mean of the normalised crop (N, 3, 64, 64) of ``dtype``, in float32: what the model
+    returns depends on every input value, as a real network's does."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    et = {"float32": TensorProto.FLOAT, "float16": TensorProto.FLOAT16}[dtype]
+    nodes = [helper.make_node("Cast", ["image"], ["f"], to=TensorProto.FLOAT),
+             helper.make_node("ReduceMean", ["f"], ["m"], axes=[1, 2, 3], keepdims=1),     # (N, 1, 1, 1)
+             helper.make_node("Squeeze", ["m", "ax"], ["m3"]),                             # (N, 1, 1)
+             helper.make_node("Add", ["m3", "pts"], ["landmarks"])]
+    inits = [numpy_helper.from_array(np.array([3], np.int64), "ax"),
+             numpy_helper.from_array(PTS[None].astype(np.float32), "pts")]
+    graph = helper.make_graph(nodes, "mean_shift", [helper.make_tensor_value_info("image", et, ["N", 3, 64, 64])],
+                              [helper.make_tensor_value_info("landmarks", TensorProto.FLOAT, ["N", 3, 2])], inits)
+    m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    m.ir_version = 8
+    return m
+
+
+def test_float16_model_loads_and_runs_like_its_float32_twin(tmp_path):
+    """A model exported in half precision (float16 image input): the crop is normalised as for float32 and
+    rounded once. Its landmarks equal the float32 twin's within float16 rounding of the input (a mean of
+    values <= 1 rounded at 2^-11 relative: 5e-4 px), and they see the normalisation: a crop of value 200
+    shifts them by 200 / 255 px."""
+    frame = np.full((100, 120, 3), 200, np.uint8)
+    crop = Crop(60.0, 50.0, 64.0, 0.0)                  # inside the frame: every crop pixel is 200
+    got = {}
+    for dtype in ("float32", "float16"):
+        det = _load(tmp_path / dtype, _mean_shift_model(dtype), S.detector_spec(dtype=dtype))
+        got[dtype] = det.run_crops([frame], [crop], [0])[0].points
+    np.testing.assert_allclose(got["float16"], got["float32"], atol=5e-4)
+    np.testing.assert_allclose(got["float16"], PTS - 31.5 + [60.0, 50.0] + 200 / 255, atol=5e-4)
+    msg = _error(tmp_path / "mismatch", _mean_shift_model("float16"), S.detector_spec())
+    assert msg == "detector spec face.json: input.dtype is float32 but the model input 'image' is float16"
 
 
 def test_input_name_mismatch(tmp_path):

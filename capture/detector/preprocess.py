@@ -30,13 +30,16 @@ def preprocess(frames: Sequence[np.ndarray], crops: Sequence[Crop], inp: InputSp
             img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)[:, :, None]
         out.append(img)
     x = np.stack(out)  # (N, H, W, C) uint8
-    if inp.dtype == "float32":
+    if inp.dtype in ("float32", "float16"):
         f = _buffer(buffers, "float", x.shape, np.float32)
         np.copyto(f, x, casting="unsafe")                       # exact: uint8 -> float32
         f *= np.float32(inp.scale)
         f -= np.asarray(inp.mean, np.float32)
         f /= np.asarray(inp.std, np.float32)
         x = f
+        if inp.dtype == "float16":                              # normalised in float32, rounded once
+            x = _buffer(buffers, "half", f.shape, np.float16)
+            np.copyto(x, f, casting="same_kind")
     if inp.layout == "NCHW":
         n, h, w, c = x.shape
         t = _buffer(buffers, "nchw", (n, c, h, w), x.dtype)

@@ -142,6 +142,7 @@ class Detector:
         self.model_calls = 0       # session.run calls (for tests and reports)
         self.model_frames = 0      # crops run through the model
         self._local = threading.local()   # per thread: the input batch's buffers (preprocess)
+        self._query_dtype = np.dtype(np.float32)   # a query model's point input: float32 or float16 (_check_model)
         self._check_model()
         self.onnx_sha256 = hashlib.sha256(onnx_path.read_bytes()).hexdigest()
 
@@ -176,8 +177,9 @@ class Detector:
             q = chk.input("query.name", s.query.name)
             fed.append(q.name)
             chk.shape("input", q, ("N", s.count, 3), f'kind is "query" and landmarks.count is {s.count}')
-            if q.dtype != "float32":
-                chk.fail(f"query.name '{q.name}': the model input should be float32 but it is {q.dtype}")
+            if q.dtype not in ("float32", "float16"):
+                chk.fail(f"query.name '{q.name}': the model input should be float32 or float16 but it is {q.dtype}")
+            self._query_dtype = np.dtype(q.dtype)
             if q.shape[0] is not None and n_img is not None and q.shape[0] != n_img:
                 chk.fail(f"query input '{q.name}' has batch {q.shape[0]} but image input '{port.name}' has {n_img}")
         chk.only_inputs(fed)
@@ -229,7 +231,7 @@ class Detector:
         if query_points is None:
             raise CaptureError(f"detector {self.name} is a query detector: it needs the actor's template points "
                                f"(A/landmarks/{self.name}.json); make that embedding first")
-        q = np.asarray(query_points, dtype=np.float32)
+        q = np.asarray(query_points, dtype=np.float32).astype(self._query_dtype, copy=False)
         if q.shape != (self.count, 3):
             raise CaptureError(f"detector {self.name} takes {self.count} template points (L, 3) but got an array "
                                f"of shape {q.shape}; the landmark embedding does not match the detector")

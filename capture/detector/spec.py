@@ -30,7 +30,7 @@ VERSIONS = (1, 2)           # the formats it reads
 
 LAYOUTS = ("NCHW", "NHWC")
 COLORS = {"RGB": 3, "BGR": 3, "GRAY": 1}
-DTYPES = ("float32", "uint8")
+DTYPES = ("float32", "float16", "uint8")
 FRAMES = ("crop_pixels", "crop_corner_pixels", "crop_unit", "crop_signed")
 CONFIDENCE_KINDS = ("probability", "sigma_px")
 CONFIDENCE_KINDS_V2 = ("probability", "logit", "sigma_px")
@@ -59,7 +59,7 @@ class InputSpec:
     layout: str            # NCHW or NHWC
     size: tuple[int, int]  # (width, height)
     color: str             # RGB, BGR or GRAY
-    dtype: str             # float32 or uint8
+    dtype: str             # float32, float16 (normalised as float32, then rounded) or uint8
     scale: float
     mean: tuple[float, ...]
     std: tuple[float, ...]
@@ -329,7 +329,7 @@ def _parse_input(r: _Reader) -> InputSpec:
             r.fail(r.field(key), "non-zero numbers", v)
         vecs.append(tuple(float(x) for x in v))
     if dtype == "uint8" and (scale != 1.0 or any(m != 0 for m in vecs[0]) or any(s != 1 for s in vecs[1])):
-        r.fail(r.field("dtype"), "float32 when scale/mean/std are given (uint8 input takes raw 0..255 pixels)",
+        r.fail(r.field("dtype"), "float32 or float16 when scale/mean/std are given (uint8 input takes raw 0..255 pixels)",
                dtype)
     return InputSpec(name=name, layout=layout, size=(size[0], size[1]), color=color, dtype=dtype,
                      scale=scale, mean=vecs[0], std=vecs[1])

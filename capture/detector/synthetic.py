@@ -36,7 +36,7 @@ def _image_input(name, layout, size, channels, dtype, batch):
     _, TensorProto, helper, _ = _onnx()
     w, h = size
     shape = [batch if batch is not None else "N"] + ([channels, h, w] if layout == "NCHW" else [h, w, channels])
-    et = TensorProto.FLOAT if dtype == "float32" else TensorProto.UINT8
+    et = {"float32": TensorProto.FLOAT, "float16": TensorProto.FLOAT16, "uint8": TensorProto.UINT8}[dtype]
     return helper.make_tensor_value_info(name, et, shape)
 
 
@@ -58,7 +58,7 @@ def _zero_of_image(nodes, inits, image, dtype, out="zero"):
     """(N, 1, 1) float zero that depends on the image (so outputs carry the batch dimension)."""
     _, _, helper, _ = _onnx()
     src = image
-    if dtype == "uint8":
+    if dtype != "float32":
         nodes.append(helper.make_node("Cast", [image], ["img_f"], to=1))
         src = "img_f"
     nodes.append(helper.make_node("ReduceMean", [src], ["img_mean"], axes=[1, 2, 3], keepdims=1))  # (N,1,1,1)
@@ -146,17 +146,23 @@ def centroid_model(*, size=(64, 64), layout="NCHW", channels=3, batch: int | Non
     return _model(nodes, [_image_input("image", layout, size, channels, "float32", batch)], outputs, inits)
 
 
-def query_model(count: int, *, size=(64, 64), batch: int | None = None):
-    """Query detector: landmarks (N, L, 2) = x, y of the query points (N, L, 3), in crop px."""
+def query_model(count: int, *, size=(64, 64), batch: int | None = None, dtype: str = "float32"):
+    """Query detector: landmarks (N, L, 2) = x, y of the query points (N, L, 3), in crop px (float32 out;
+    ``dtype`` float16: both inputs in half precision, as a model exported in it has them)."""
     _, TensorProto, helper, _ = _onnx()
     nodes, inits = [], [_const("q_starts", np.array([0], np.int64)), _const("q_ends", np.array([2], np.int64)),
                         _const("q_axes", np.array([2], np.int64))]
-    _zero_of_image(nodes, inits, "image", "float32")
-    nodes += [helper.make_node("Slice", ["points", "q_starts", "q_ends", "q_axes"], ["q_xy"]),
+    _zero_of_image(nodes, inits, "image", dtype)
+    points = "points"
+    if dtype != "float32":
+        nodes.append(helper.make_node("Cast", ["points"], ["points_f"], to=TensorProto.FLOAT))
+        points = "points_f"
+    nodes += [helper.make_node("Slice", [points, "q_starts", "q_ends", "q_axes"], ["q_xy"]),
               helper.make_node("Add", ["q_xy", "zero"], ["landmarks"])]
     n = batch if batch is not None else "N"
-    inputs = [_image_input("image", "NCHW", size, 3, "float32", batch),
-              helper.make_tensor_value_info("points", TensorProto.FLOAT, [n, count, 3])]
+    q_type = TensorProto.FLOAT16 if dtype == "float16" else TensorProto.FLOAT
+    inputs = [_image_input("image", "NCHW", size, 3, dtype, batch),
+              helper.make_tensor_value_info("points", q_type, [n, count, 3])]
     outputs = [helper.make_tensor_value_info("landmarks", TensorProto.FLOAT, [n, count, 2])]
     return _model(nodes, inputs, outputs, inits)
 
@@ -227,7 +233,7 @@ def detector_spec(name: str = "synthetic", count: int = 3, *, size=(64, 64), lay
     """A spec dict (format 1) for the synthetic models; ``confidence``/``presence`` are output dicts."""
     channels = 1 if color == "GRAY" else 3
     inp = {"name": "image", "layout": layout, "size": list(size), "color": color, "dtype": dtype}
-    if dtype == "float32":
+    if dtype != "uint8":
         inp.update(scale=scale, mean=[0.0] * channels, std=[1.0] * channels)
     outputs = {"landmarks": {"name": "landmarks", "frame": frame}}
     if confidence is not None:
