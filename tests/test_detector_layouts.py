@@ -11,7 +11,7 @@ import pytest
 from capture.detector import Detector
 from capture.detector import synthetic as S
 from capture.detector.crop import Crop, frame_to_input
-from capture.detector.decode import heatmap_peaks, make_anchors, nms
+from capture.detector.decode import anchor_counts, heatmap_peaks, make_anchors, nms
 from capture.detector.finder import OnnxFaceFinder
 from capture.detector.spec import AnchorSpec
 from capture.io.errors import CaptureError
@@ -171,6 +171,7 @@ def test_blazeface_anchor_layout_matches_mediapipe():
             np.testing.assert_allclose(a[512 + (row * 8 + col) * 6 + k], [(col + 0.5) / 8, (row + 0.5) / 8, 1, 1])
     same = make_anchors((128, 128), AnchorSpec(strides=(8, 16), per_cell=(2, 6)))
     np.testing.assert_array_equal(a, same)
+    assert anchor_counts((128, 128), AnchorSpec(strides=(8, 16, 16, 16), per_cell=(2, 2, 2, 2))) == [512, 384]
 
 
 def _blaze_finder(tmp_path, raw, logits, nms_mode="weighted", per_cell=2):
@@ -234,6 +235,83 @@ def test_anchor_count_mismatch_is_one_line(tmp_path):
     msg = str(e.value)
     assert "\n" not in msg
     assert "make 1344 anchors" in msg and "'regressors' should be (N, 1344, D) but it is (1, 896, 16)" in msg
+
+
+SCRFD_STRIDES = [8, 16, 32]
+
+
+def _scrfd_finder(tmp_path, boxes, scores, batched=False, names=None):
+    """A finder on a model with SCRFD's outputs (score_8, score_16, score_32, bbox_8, ..., kps_8, ...) and the
+    spec a user writes for it: anchors at the cell corners (offset 0), 2 per cell of the stride's side,
+    distances in strides, probabilities, hard NMS; input RGB (x - 127.5) / 128 as InsightFace feeds it."""
+    import onnx
+
+    onnx.save(S.layered_box_model(boxes, scores, SCRFD_STRIDES, size=(128, 128), batched=batched),
+              str(tmp_path / "scrfd.onnx"))
+    spec = {"format": "capture-face-detector", "version": 2,
+            "input": {"name": "image", "layout": "NCHW", "size": [128, 128], "color": "RGB", "dtype": "float32",
+                      "mean": 127.5, "std": 128.0},
+            "anchors": {"strides": SCRFD_STRIDES, "sizes": [[s, s] for s in SCRFD_STRIDES], "offset": 0.0},
+            "outputs": {"boxes": {"name": names or [f"bbox_{s}" for s in SCRFD_STRIDES], "encoding": "anchor_distance"},
+                        "scores": {"name": [f"score_{s}" for s in SCRFD_STRIDES], "kind": "probability",
+                                   "threshold": 0.5}},
+            "nms": {"iou": 0.4, "mode": "hard"}}
+    (tmp_path / "scrfd.json").write_text(json.dumps(spec))
+    return OnnxFaceFinder(tmp_path / "scrfd.onnx")
+
+
+def _scrfd_reference(boxes, scores, threshold=0.5):
+    """InsightFace's SCRFD decoding (``scrfd.py``: anchor centres ``np.mgrid[:h, :w][::-1] * stride``, each
+    repeated per anchor, ``distance2bbox(centres, bbox_pred * stride)``), boxes in input px, best first."""
+    out = []
+    for s, b, sc in zip(SCRFD_STRIDES, boxes, scores):
+        h = w = 128 // s
+        centres = (np.stack(np.mgrid[:h, :w][::-1], axis=-1).astype(np.float32) * s).reshape(-1, 2)
+        centres = np.stack([centres] * 2, axis=1).reshape(-1, 2)
+        d = np.asarray(b) * s
+        xyxy = np.stack([centres[:, 0] - d[:, 0], centres[:, 1] - d[:, 1], centres[:, 0] + d[:, 2],
+                         centres[:, 1] + d[:, 3]], axis=-1)
+        keep = np.asarray(sc).reshape(-1) >= threshold
+        out += list(zip(xyxy[keep], np.asarray(sc).reshape(-1)[keep]))
+    return sorted(out, key=lambda t: -t[1])
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_scrfd_finder_decodes_per_stride_outputs_as_insightface_does(tmp_path, batched):
+    """Two faces, one on a stride-16 anchor and one on a stride-32 anchor; everything else scores 0.01. The
+    boxes are InsightFace's own decoding of the same outputs, in frame px: the frame is the input's size, so
+    only the outer-edge convention moves them (an edge at input u sits at u - 0.5)."""
+    counts = [(128 // s) ** 2 * 2 for s in SCRFD_STRIDES]
+    boxes = [np.full((k, 4), 0.5, np.float32) for k in counts]
+    scores = [np.full((k, 1), 0.01, np.float32) for k in counts]
+    a = (3 * 8 + 5) * 2 + 1                  # stride 16: row 3, column 5, second anchor
+    boxes[1][a] = [2.0, 1.5, 1.0, 2.5]
+    scores[1][a] = 0.9
+    b = (1 * 4 + 2) * 2                      # stride 32: row 1, column 2, first anchor
+    boxes[2][b] = [0.5, 0.75, 0.5, 0.25]
+    scores[2][b] = 0.6
+    found = _scrfd_finder(tmp_path, boxes, scores, batched).find_all(np.zeros((128, 128, 3), np.uint8))
+    ref = _scrfd_reference(boxes, scores)
+    assert len(found) == len(ref) == 2
+    for (box, score), (rbox, rscore) in zip(found, ref):
+        np.testing.assert_allclose(box, rbox - 0.5, atol=1e-4)
+        assert score == pytest.approx(float(rscore), abs=1e-6)
+    np.testing.assert_allclose(ref[0][0], [80 - 32, 48 - 24, 80 + 16, 48 + 40])     # written out once
+
+
+def test_scrfd_spec_and_model_mismatches_are_one_line(tmp_path):
+    counts = [(128 // s) ** 2 * 2 for s in SCRFD_STRIDES]
+    boxes = [np.zeros((k, 4), np.float32) for k in counts]
+    scores = [np.zeros((k, 1), np.float32) for k in counts]
+    with pytest.raises(CaptureError) as e:
+        _scrfd_finder(tmp_path, boxes, scores, names=["bbox_8", "bbox_16"])
+    assert "\n" not in str(e.value)
+    assert "outputs.boxes.name is [\"bbox_8\", \"bbox_16\"]; expected 3 output names" in str(e.value)
+    with pytest.raises(CaptureError) as e:       # the model made for another input size: 64 rows at stride 32
+        _scrfd_finder(tmp_path, boxes[:2] + [np.zeros((64, 4))], scores[:2] + [np.zeros((64, 1))])
+    msg = str(e.value)
+    assert "\n" not in msg and "anchor layer 2 (stride 32, 2/cell) on a 128x128 input makes 32 anchors" in msg
+    assert "'bbox_32'" in msg and "(64, 4)" in msg
 
 
 def test_nms_hard_is_opencv_and_weighted_blends():

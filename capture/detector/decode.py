@@ -110,6 +110,13 @@ def anchor_layers(strides, per_cell, sizes=None) -> list[tuple[int, int, list[fl
     return out
 
 
+def anchor_counts(input_size: tuple[int, int], spec) -> list[int]:
+    """Anchors of each layer of :func:`anchor_layers`, in :func:`make_anchors`' order (they add up to its K)."""
+    w_in, h_in = input_size
+    return [math.ceil(w_in / stride) * math.ceil(h_in / stride) * per
+            for stride, per, _ in anchor_layers(spec.strides, spec.per_cell, spec.sizes)]
+
+
 def make_anchors(input_size: tuple[int, int], spec) -> np.ndarray:
     """Anchors (K, 4) as cx, cy, w, h in crop_unit coordinates for an :class:`~.spec.AnchorSpec`."""
     w_in, h_in = input_size
@@ -137,6 +144,8 @@ def decode_boxes(raw: np.ndarray, anchors: np.ndarray, encoding: str, scale=(1.0
 
     ``anchor_linear`` (MediaPipe BlazeFace): ``cx = a_cx + r_x / scale_x * a_w``, ``w = r_w / scale_w * a_w``.
     ``anchor_ssd`` (SSD, RetinaFace): ``cx = a_cx + r_x * v0 * a_w``, ``w = a_w * exp(r_w * v1)``.
+    ``anchor_distance`` (SCRFD, FCOS): the four columns are the distances from the anchor centre to the
+    left, top, right and bottom edges in anchor sides: ``x0 = a_cx - r_0 a_w``, ``x1 = a_cx + r_2 a_w``.
     """
     r = np.asarray(raw, dtype=np.float64)[:, :4]
     a = anchors
@@ -149,6 +158,10 @@ def decode_boxes(raw: np.ndarray, anchors: np.ndarray, encoding: str, scale=(1.0
         return np.stack([a[:, 0] + r[:, 0] * v0 * a[:, 2], a[:, 1] + r[:, 1] * v0 * a[:, 3],
                          a[:, 2] * np.exp(np.clip(r[:, 2] * v1, -50, 50)),
                          a[:, 3] * np.exp(np.clip(r[:, 3] * v1, -50, 50))], axis=1)
+    if encoding == "anchor_distance":
+        x0, y0 = a[:, 0] - r[:, 0] * a[:, 2], a[:, 1] - r[:, 1] * a[:, 3]
+        x1, y1 = a[:, 0] + r[:, 2] * a[:, 2], a[:, 1] + r[:, 3] * a[:, 3]
+        return np.stack([(x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0], axis=1)
     raise ValueError(f"unknown box encoding {encoding!r}")
 
 

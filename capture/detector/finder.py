@@ -6,9 +6,9 @@
   histogram-equalised grey frame; the largest detection wins.
 * ``full_frame``: the whole frame, letterboxed into the detector input (no search).
 * a face-detector ONNX with its own spec (:class:`~capture.detector.spec.FaceFinderSpec`): the frame is
-  letterboxed into its input; boxes are read directly or decoded from SSD / BlazeFace anchors
-  (:mod:`.decode`), scores may be logits, optional non-maximum suppression; the box with the highest
-  score at or above ``scores.threshold`` wins.
+  letterboxed into its input; boxes are read directly or decoded from SSD / BlazeFace / SCRFD anchors
+  (:mod:`.decode`; SCRFD's outputs come one per anchor layer and are concatenated), scores may be logits,
+  optional non-maximum suppression; the box with the highest score at or above ``scores.threshold`` wins.
 
 Each finder returns a face box in frame pixels (outer edges ``x0, y0, x1, y1``, pixel centres at
 integers) or None; :meth:`crop` turns it into the landmark detector's crop.
@@ -22,7 +22,7 @@ import numpy as np
 
 from capture.detector.preprocess import preprocess
 from capture.detector.crop import Crop, crop_from_box, full_frame_crop, input_to_frame, output_to_input_px
-from capture.detector.decode import anchor_layers, decode_boxes, make_anchors, nms, sigmoid, to_xyxy
+from capture.detector.decode import anchor_counts, anchor_layers, decode_boxes, make_anchors, nms, sigmoid, to_xyxy
 from capture.detector.session import ModelChecker, check_finite, check_image_input, fmt_shape, open_session
 from capture.detector.spec import FaceFinderSpec, load_face_finder_spec
 from capture.io.errors import CaptureError
@@ -111,9 +111,24 @@ class OnnxFaceFinder(FaceFinder):
         chk.only_inputs([self.spec.input.name])
         self.batch = port.shape[0]
         sp = self.spec
+        self.anchors = None
+        self.part_rows: list[int] = []     # anchors per output when the outputs come one per anchor layer
+        if sp.boxes.parts:
+            self._check_parts(chk)
+        else:
+            self._check_outputs(chk)
+        import hashlib
+
+        self._identity = "onnx:" + hashlib.sha256(self.onnx_path.read_bytes()).hexdigest() + ":" + self.spec.digest()
+
+    def identity(self) -> str:
+        return self._identity
+
+    def _check_outputs(self, chk: ModelChecker) -> None:
+        """One boxes output and one scores output: (N, K, 4) boxes or (N, K, D) anchor regressors, (N, K) scores."""
+        sp = self.spec
         b = chk.output("outputs.boxes.name", sp.boxes.name)
         s = chk.output("outputs.scores.name", sp.scores.name)
-        self.anchors = None
         if sp.anchors is not None:
             self.anchors = make_anchors(sp.input.size, sp.anchors)
             k = len(self.anchors)
@@ -136,12 +151,26 @@ class OnnxFaceFinder(FaceFinder):
                          f"{ns[0]} scores")
         chk.float_output("outputs.boxes", b)
         chk.float_output("outputs.scores", s)
-        import hashlib
 
-        self._identity = "onnx:" + hashlib.sha256(self.onnx_path.read_bytes()).hexdigest() + ":" + self.spec.digest()
-
-    def identity(self) -> str:
-        return self._identity
+    def _check_parts(self, chk: ModelChecker) -> None:
+        """Outputs given one per anchor layer (SCRFD's ``score_8, score_16, ...``): each holds its layer's
+        anchors as rows, with a batch axis (N, K_l, D) or without one (K_l, D), as SCRFD is exported."""
+        sp = self.spec
+        self.anchors = make_anchors(sp.input.size, sp.anchors)
+        self.part_rows = anchor_counts(sp.input.size, sp.anchors)
+        layers = anchor_layers(sp.anchors.strides, sp.anchors.per_cell, sp.anchors.sizes)
+        for l, ((stride, per, _), k) in enumerate(zip(layers, self.part_rows)):
+            why = (f"anchor layer {l} (stride {stride}, {per}/cell) on a {sp.input.width}x{sp.input.height} input "
+                   f"makes {k} anchors")
+            for field, name, need in (("outputs.boxes.name", sp.boxes.parts[l], 4),
+                                      ("outputs.scores.name", sp.scores.parts[l], 1)):
+                port = chk.output(f"{field}[{l}]", name)
+                rest = _part_dims(port.shape, k)
+                if rest is None or (need > 1 and rest and rest[-1] is not None and rest[-1] < need):
+                    what = "(N, K, 4 or more) or (K, 4 or more) regressors" if need > 1 else "(N, K) or (K, 1) scores"
+                    chk.fail(f"{why}, so the model output '{name}' ({field}[{l}]) should hold {what} with K = {k} "
+                             f"but it is {fmt_shape(port.raw_shape)}")
+                chk.float_output(f"{field}[{l}]", port)
 
     def _decode(self, boxes_raw: np.ndarray, scores_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Raw outputs of one image -> (boxes (K, 4) xyxy in the spec's box frame, scores (K,))."""
@@ -185,7 +214,14 @@ class OnnxFaceFinder(FaceFinder):
         x = preprocess([frame], [crop], inp)
         if self.batch is not None and self.batch > 1:
             x = np.repeat(x, self.batch, axis=0)
-        boxes_raw, scores_raw = self.session.run([self.spec.boxes.name, self.spec.scores.name], {inp.name: x})
+        sp = self.spec
+        outs = self.session.run(list(sp.boxes.names + sp.scores.names), {inp.name: x})
+        if self.part_rows:     # one output per anchor layer: their rows in anchor order, as one image's batch
+            n = len(self.part_rows)
+            boxes_raw = _stack_parts(outs[:n], sp.boxes.parts, self.part_rows, self.onnx_path.name)[None]
+            scores_raw = _stack_parts(outs[n:], sp.scores.parts, self.part_rows, self.onnx_path.name)[None]
+        else:
+            boxes_raw, scores_raw = outs
         boxes, scores = self._decode(boxes_raw, scores_raw)
         ok = scores >= self.spec.scores.threshold
         boxes, scores = boxes[ok], scores[ok]
@@ -212,6 +248,35 @@ class OnnxFaceFinder(FaceFinder):
         """The face with the highest score (after NMS), or None."""
         found = self.find_all(frame)
         return found[0][0] if found else None
+
+
+def _part_dims(shape, k: int) -> list | None:
+    """The per-anchor dimensions (size-1 ones dropped) of an output that holds ``k`` anchor rows, or None
+    when it cannot: ``(k, ...)`` of rank <= 2 has no batch axis, anything else has one first."""
+    dims = list(shape)
+    if not (dims and dims[0] == k and len(dims) <= 2):
+        dims = dims[1:]
+    dims = [d for d in dims if d != 1]
+    if not dims or (dims[0] is not None and dims[0] != k):
+        return None
+    return dims[1:]
+
+
+def _stack_parts(arrays, names, rows: list[int], label: str) -> np.ndarray:
+    """One image's rows of outputs given one per anchor layer -> ``(K, D)`` float64, in anchor order."""
+    out = []
+    for a, name, k in zip(arrays, names, rows):
+        a = np.asarray(a, dtype=np.float64)
+        if not (a.ndim and a.shape[0] == k and a.ndim <= 2):
+            a = a[0] if a.ndim else a                      # the first image of a batch
+        if a.size == 0 or a.size % k:
+            raise CaptureError(f"face detector {label}: output '{name}' {fmt_shape(np.shape(a))} does not hold "
+                               f"the {k} anchors of its layer; fix the spec's anchors")
+        out.append(a.reshape(k, -1))
+    if len({p.shape[1] for p in out}) != 1:
+        raise CaptureError(f"face detector {label}: outputs {', '.join(names)} hold different numbers of values per "
+                           f"anchor ({', '.join(str(p.shape[1]) for p in out)}); fix the model")
+    return np.concatenate(out)
 
 
 def make_finder(first_frame: str, threads: int = 2) -> FaceFinder:

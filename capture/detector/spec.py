@@ -41,7 +41,7 @@ ORDERS = ("interleaved", "planar")
 HEATMAP_LAYOUTS = ("LHW", "HWL")
 HEATMAP_REFINES = ("gaussian", "parabola", "none")
 BOX_FORMATS = ("xyxy", "xywh", "cxcywh")
-BOX_ENCODINGS = ("absolute", "anchor_linear", "anchor_ssd")
+BOX_ENCODINGS = ("absolute", "anchor_linear", "anchor_ssd", "anchor_distance")
 NMS_MODES = ("hard", "weighted")
 FIRST_FRAME_BUILTINS = ("haar", "full_frame")
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -163,20 +163,32 @@ class DetectorSpec:
 
 @dataclass(frozen=True)
 class BoxesOutput:
-    name: str
+    name: str                               # the output; with ``parts``, their names joined (for messages)
     format: str
     frame: str
-    encoding: str = "absolute"              # absolute, anchor_linear (BlazeFace), anchor_ssd
+    encoding: str = "absolute"              # absolute, anchor_linear (BlazeFace), anchor_ssd, anchor_distance (SCRFD)
     scale: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)   # anchor_linear: divisors of x, y, w, h
     variances: tuple[float, float] = (0.1, 0.2)       # anchor_ssd: centre and size variances
+    parts: tuple[str, ...] = ()             # one output per anchor layer (SCRFD), concatenated in order
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The model outputs that hold the boxes, in anchor order."""
+        return self.parts or (self.name,)
 
 
 @dataclass(frozen=True)
 class ScoresOutput:
-    name: str
+    name: str                    # the output; with ``parts``, their names joined (for messages)
     threshold: float
     kind: str = "score"          # score (v1), probability or logit
     column: int | None = None    # for (N, K, C) scores with C > 1: the face column
+    parts: tuple[str, ...] = ()  # one output per anchor layer (SCRFD), concatenated in order
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The model outputs that hold the scores, in anchor order."""
+        return self.parts or (self.name,)
 
 
 @dataclass(frozen=True)
@@ -362,7 +374,22 @@ def _parse_score(r: _Reader, version: int, cls):
     kw = {}
     if cls is ScoresOutput and r.get("column") is not None:
         kw["column"] = r.int_("column", lo=0)
-    return cls(name=r.str_("name"), threshold=thr, kind=kind, **kw)
+    if cls is ScoresOutput and version >= 2:
+        name, kw["parts"] = _output_names(r)
+    else:
+        name = r.str_("name")
+    return cls(name=name, threshold=thr, kind=kind, **kw)
+
+
+def _output_names(r: _Reader) -> tuple[str, tuple[str, ...]]:
+    """A face detector's ``name``: one output, or a list of outputs, one per anchor layer (as SCRFD gives
+    them), whose rows are concatenated in order. ``(name for messages, parts or ())``."""
+    v = r.get("name")
+    if not isinstance(v, list):
+        return r.str_("name"), ()
+    if not v or not all(isinstance(x, str) and x for x in v) or len(set(v)) != len(v):
+        r.fail(r.field("name"), "an output name, or a list of distinct output names (one per anchor layer)", v)
+    return ", ".join(v), tuple(v)
 
 
 def _parse_landmark_output(r: _Reader, version: int) -> LandmarkOutput:
@@ -542,6 +569,11 @@ def parse_face_finder_spec(obj: Any, path: Path | None = None) -> FaceFinderSpec
                 kw["scale"] = tuple(float(v) for v in sc)
                 if b.get("variances") is not None:
                     b.fail(b.field("variances"), "absent for encoding 'anchor_linear'", b.get("variances"))
+            elif enc == "anchor_distance":
+                for key in ("scale", "variances"):
+                    if b.get(key) is not None:
+                        b.fail(b.field(key), "absent for encoding 'anchor_distance' (distances are in anchor sides)",
+                               b.get(key))
             else:
                 va = b.get("variances", [0.1, 0.2])
                 if (not isinstance(va, list) or len(va) != 2
@@ -550,17 +582,28 @@ def parse_face_finder_spec(obj: Any, path: Path | None = None) -> FaceFinderSpec
                 kw["variances"] = (float(va[0]), float(va[1]))
                 if b.get("scale") is not None:
                     b.fail(b.field("scale"), "absent for encoding 'anchor_ssd'", b.get("scale"))
-        boxes = BoxesOutput(name=b.str_("name"), format=fmt, frame=frame, encoding=enc, **kw)
+        name, parts = _output_names(b)
+        boxes = BoxesOutput(name=name, format=fmt, frame=frame, encoding=enc, parts=parts, **kw)
     scores = _parse_score(o.sub("scores"), version, ScoresOutput)
-    if boxes.name == scores.name:
-        o.fail("outputs.scores.name", "a different output than outputs.boxes.name", scores.name)
+    if set(boxes.names) & set(scores.names):
+        o.fail("outputs.scores.name", "different outputs than outputs.boxes.name", scores.name)
     anchors = _parse_anchors(r.sub("anchors")) if r.get("anchors") is not None else None
     if (anchors is None) != (boxes.encoding == "absolute"):
         if anchors is None:
             r.fail("anchors", f"an anchor layout for outputs.boxes.encoding '{boxes.encoding}'", None)
-        r.fail("outputs.boxes.encoding", "'anchor_linear' or 'anchor_ssd' when anchors are given", boxes.encoding)
+        r.fail("outputs.boxes.encoding", "'anchor_linear', 'anchor_ssd' or 'anchor_distance' when anchors are given",
+               boxes.encoding)
     if anchors is not None and anchors.sizes is None and boxes.encoding == "anchor_ssd":
         r.fail("anchors.sizes", "anchor sides in input px for encoding 'anchor_ssd'", None)
+    if boxes.parts or scores.parts:
+        from capture.detector.decode import anchor_layers
+
+        layers = len(anchor_layers(anchors.strides, anchors.per_cell, anchors.sizes)) if anchors else 1
+        for field, out in (("outputs.boxes.name", boxes), ("outputs.scores.name", scores)):
+            if len(out.names) != layers or anchors is None:
+                r.fail(field, f"{layers} output name{'s' if layers > 1 else ''} (one per anchor layer of distinct "
+                       f"stride, as the list of the other output has)" if anchors is not None else
+                       "one output name (a list needs an anchor layout, one name per layer)", list(out.names))
     nms = None
     if r.get("nms") is not None:
         n = r.sub("nms")

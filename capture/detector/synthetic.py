@@ -227,6 +227,27 @@ def box_model(boxes: np.ndarray, scores: np.ndarray, *, size=(128, 96), layout="
     return _model(nodes, [_image_input("image", layout, size, 3, "float32", batch)], outputs, inits)
 
 
+def layered_box_model(boxes: list[np.ndarray], scores: list[np.ndarray], strides: list[int], *, size=(128, 128),
+                      batched: bool = False):
+    """A face detector exported as SCRFD is: for each stride ``s`` outputs ``score_s`` (K_s, 1) and ``bbox_s``
+    (K_s, 4) (and ``kps_s`` (K_s, 10), zeros, which the finder does not read), fixed to the given arrays;
+    ``batched``: (1, K_s, D) instead (SCRFD's batched export). The input is (1, 3, H, W) float32."""
+    _, TensorProto, helper, _ = _onnx()
+    nodes = [helper.make_node("ReduceMean", ["image"], ["img_mean"], axes=[0, 1, 2, 3], keepdims=0),   # a scalar
+             helper.make_node("Mul", ["img_mean", "zero_c"], ["zero"])]
+    inits = [_const("zero_c", np.float32(0.0))]
+    outputs = []
+    for kind, arrays in (("score", scores), ("bbox", boxes), ("kps", [np.zeros((len(b), 10)) for b in boxes])):
+        for s, a in zip(strides, arrays):
+            a = np.asarray(a, np.float32).reshape(len(a), -1)
+            a = a[None] if batched else a
+            name = f"{kind}_{s}"
+            inits.append(_const(f"{name}_const", a))
+            nodes.append(helper.make_node("Add", ["zero", f"{name}_const"], [name]))
+            outputs.append(helper.make_tensor_value_info(name, TensorProto.FLOAT, list(a.shape)))
+    return _model(nodes, [_image_input("image", "NCHW", size, 3, "float32", 1)], outputs, inits)
+
+
 def detector_spec(name: str = "synthetic", count: int = 3, *, size=(64, 64), layout="NCHW", color="RGB",
                   dtype="float32", scale=1 / 255, margin=0.25, align=None, first_frame="haar", track=True,
                   frame="crop_pixels", confidence=None, presence=None, kind="dense", query=None) -> dict:
