@@ -13,7 +13,7 @@ from capture.detector import synthetic as S
 from capture.detector.crop import Crop, frame_to_input
 from capture.detector.decode import anchor_counts, heatmap_peaks, make_anchors, nms
 from capture.detector.finder import OnnxFaceFinder
-from capture.detector.spec import AnchorSpec
+from capture.detector.spec import AnchorSpec, parse_face_finder_spec
 from capture.io.errors import CaptureError
 from tests.test_detector_crop import _blobs
 
@@ -306,7 +306,15 @@ def test_scrfd_spec_and_model_mismatches_are_one_line(tmp_path):
     with pytest.raises(CaptureError) as e:
         _scrfd_finder(tmp_path, boxes, scores, names=["bbox_8", "bbox_16"])
     assert "\n" not in str(e.value)
-    assert "outputs.boxes.name is [\"bbox_8\", \"bbox_16\"]; expected 3 output names" in str(e.value)
+    assert "outputs.boxes.name is [\"bbox_8\", \"bbox_16\"]; expected a list of 3 output names" in str(e.value)
+    with pytest.raises(CaptureError) as e:       # scores as one output beside boxes as a list
+        parse_face_finder_spec({"format": "capture-face-detector", "version": 2,
+                                "input": {"name": "image", "layout": "NCHW", "size": [128, 128], "color": "RGB",
+                                          "dtype": "float32"},
+                                "anchors": {"strides": [8], "per_cell": 2, "offset": 0.0},
+                                "outputs": {"boxes": {"name": ["bbox_8"], "encoding": "anchor_distance"},
+                                            "scores": {"name": "score_8", "kind": "probability", "threshold": 0.5}}})
+    assert "outputs.scores.name is \"score_8\"; expected a list of 1 output names" in str(e.value)
     with pytest.raises(CaptureError) as e:       # the model made for another input size: 64 rows at stride 32
         _scrfd_finder(tmp_path, boxes[:2] + [np.zeros((64, 4))], scores[:2] + [np.zeros((64, 1))])
     msg = str(e.value)

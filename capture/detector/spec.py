@@ -595,15 +595,18 @@ def parse_face_finder_spec(obj: Any, path: Path | None = None) -> FaceFinderSpec
                boxes.encoding)
     if anchors is not None and anchors.sizes is None and boxes.encoding == "anchor_ssd":
         r.fail("anchors.sizes", "anchor sides in input px for encoding 'anchor_ssd'", None)
-    if boxes.parts or scores.parts:
+    if boxes.parts or scores.parts:      # outputs one per anchor layer (SCRFD): both lists, one name per layer
         from capture.detector.decode import anchor_layers
 
-        layers = len(anchor_layers(anchors.strides, anchors.per_cell, anchors.sizes)) if anchors else 1
         for field, out in (("outputs.boxes.name", boxes), ("outputs.scores.name", scores)):
-            if len(out.names) != layers or anchors is None:
-                r.fail(field, f"{layers} output name{'s' if layers > 1 else ''} (one per anchor layer of distinct "
-                       f"stride, as the list of the other output has)" if anchors is not None else
-                       "one output name (a list needs an anchor layout, one name per layer)", list(out.names))
+            shown = list(out.parts) if out.parts else out.name
+            if anchors is None:
+                r.fail(field, "one output name (a list of outputs, one per anchor layer, needs an anchor layout)",
+                       shown)
+            layers = len(anchor_layers(anchors.strides, anchors.per_cell, anchors.sizes))
+            if len(out.parts) != layers:
+                r.fail(field, f"a list of {layers} output names, one per anchor layer of distinct stride (boxes and "
+                       f"scores are both lists when one is)", shown)
     nms = None
     if r.get("nms") is not None:
         n = r.sub("nms")
