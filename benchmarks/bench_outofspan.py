@@ -56,6 +56,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repo's packages
 from benchmarks.heldout import (
     DEFAULT_ICT,
+    identity_coeffs,
     load_ict_identity,
     make_performance,
     sample_actor_split,
@@ -139,6 +140,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--actor", default=str(DEFAULT_ACTOR))
     ap.add_argument("--ict", default=str(DEFAULT_ICT))
+    ap.add_argument("--identity", default="sample", choices=("sample", "b"),
+                    help="the performer: the sample actor's ICT identity, or identity B (the sample's identity "
+                         "coefficients negated; fit it with an actor learned from B's shapes, --actor)")
     ap.add_argument("--sequences", type=int, default=4)
     ap.add_argument("--frames", type=int, default=90)
     ap.add_argument("--seed", type=int, default=0, help="0: reporting; the default preset was tuned on 100")
@@ -178,7 +182,7 @@ def main(argv: list[str] | None = None) -> dict:
         args.sequences, args.frames, args.window, args.overlap = 1, 8, 4, 1
         configs, args.no_bound, args.paper_frames, args.paper_iterations = [(100, 0.5)], False, 2, 5
     training, held_out = sample_actor_split(SAMPLE_JSON)
-    ident = load_ict_identity(Path(args.ict))
+    ident = load_ict_identity(Path(args.ict), identity_coeffs(args.identity, Path(args.ict)))
     perf = make_performance(ident, held_out, args.sequences, args.frames, seed=args.seed)
     actor = load_actor(args.actor)
     faces = np.asarray(actor.template.faces)
@@ -191,7 +195,8 @@ def main(argv: list[str] | None = None) -> dict:
         bases["GBS53 [0,1] (bound)"] = np.stack(list(ident.deltas.values()))
     paper = replace(FIT_PRESETS["paper"], iterations=args.paper_iterations, warm_iterations=None)
     print(f"held-out performance (seed {args.seed}): {json.dumps(perf.describe())}")
-    res = {"performance": perf.describe(), "seed": args.seed, "actor": str(args.actor), "preset": args.preset,
+    res = {"performance": perf.describe(), "seed": args.seed, "identity": args.identity, "actor": str(args.actor),
+           "preset": args.preset,
            "noise_model": args.noise, "settings": settings.to_dict(), "window": args.window, "overlap": args.overlap,
            "configs": []}
     for n_lm, noise in configs:
@@ -239,7 +244,8 @@ def main(argv: list[str] | None = None) -> dict:
     res["load_average"] = os.getloadavg()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    suffix = "" if args.noise == "iid" else f"_{args.noise}"
+    suffix = ("" if args.noise == "iid" else f"_{args.noise}") + ("" if args.identity == "sample" else
+                                                                   f"_identity_{args.identity}")
     p = out / ("outofspan_quick.json" if args.quick else f"outofspan_seed{args.seed}{suffix}.json")
     write_text(p, json.dumps(res, indent=1))
     print(f"\nnumbers: {p}")
@@ -272,8 +278,9 @@ def over_seeds(argv: list[str] | None, seeds: list[int], out: Path) -> dict:
             print(f"  {name:42s} mean {allv.mean():.3f} mm, median {np.median(allv):.3f} over {len(allv)} "
                   f"sequences; per seed " + " / ".join(f"{np.mean(v):.3f}" for v in per_seed.values()))
     res = {"seeds": seeds, "summary": summary, "per_seed": runs}
-    noise = runs[0].get("noise_model", "iid")
-    p = out / f"outofspan_seeds{seeds[0]}-{seeds[-1]}{'' if noise == 'iid' else '_' + noise}.json"
+    noise, identity = runs[0].get("noise_model", "iid"), runs[0].get("identity", "sample")
+    p = out / (f"outofspan_seeds{seeds[0]}-{seeds[-1]}{'' if noise == 'iid' else '_' + noise}"
+               f"{'' if identity == 'sample' else '_identity_' + identity}.json")
     write_text(p, json.dumps(res, indent=1))
     print(f"numbers: {p}")
     return res

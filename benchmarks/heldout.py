@@ -47,6 +47,17 @@ class ICTIdentity:
     deltas: dict[str, np.ndarray]       # name -> (V, 3) mm, all 53 ICT expressions
 
 
+def identity_coeffs(name: str, npz: Path = DEFAULT_ICT) -> np.ndarray:
+    """The ICT identity coefficients of a named identity: ``sample`` (the bundled sample actor's,
+    ``sample_identity_coeffs``) or ``b`` (their negation: the second identity of the retargeting test,
+    ``benchmarks/bench_retarget.py`` and ``tests/data/ict_b_actor``)."""
+    if name not in ("sample", "b"):
+        raise ValueError(f"unknown identity {name!r}; expected 'sample' or 'b'")
+    with np.load(Path(npz), allow_pickle=False) as d:
+        c = np.asarray(d["sample_identity_coeffs"], np.float64)[:N_IDENTITY]
+    return c if name == "sample" else -c
+
+
 def load_ict_identity(npz: Path = DEFAULT_ICT, identity_coeffs: np.ndarray | None = None) -> ICTIdentity:
     """The ICT Light model at ``identity_coeffs`` (default: the npz's ``sample_identity_coeffs``), face region, mm."""
     npz = Path(npz)
