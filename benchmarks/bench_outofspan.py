@@ -31,8 +31,14 @@ than 1 mm), split into the error along the camera axis (``|z|``, depth) and acro
 per frame; ratio AIM / GBS19. Seeds: ``--seed 0`` is the reporting seed; the default preset was tuned
 on ``--seed 100`` (different sequences, expressions and noise). JSON to ``--out``.
 
+Controls: ``--identity b --actor B`` plays the performance in a second ICT identity's face (for an actor learned from
+that identity's shapes); ``--in-span`` mixes the actor's own training expressions instead; ``--no-jaw-motion`` keeps
+the jaw shapes at 0 (ICT blends them linearly, which bends the rigid lower teeth at partial weights: a rigid jaw
+cannot follow that).
+
 Usage:
     python benchmarks/bench_outofspan.py [--sequences 4] [--frames 90] [--configs 1000:0.5,300:0.5] [--quick]
+    python benchmarks/bench_outofspan.py --identity b --actor B --seeds 0,1,2,3,4,5 --no-bound [--no-jaw-motion]
     python benchmarks/bench_outofspan.py --seeds 0,1,2,3,4,5 --configs 1000:0.5 --no-bound [--compare-actor A]
     python benchmarks/bench_outofspan.py --seeds 0,1,2,3,4,5 --no-bound --fixed-prior [--noise detector]
 """
@@ -152,6 +158,11 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--noise", default="iid", choices=NOISE_MODELS,
                     help="landmark errors: iid per frame, or detector (a bias per landmark + an error that changes "
                          "slowly over frames, each of the configuration's std)")
+    ap.add_argument("--in-span", action="store_true",
+                    help="a control: the performance mixes the actor's own training expressions instead of held-out ones")
+    ap.add_argument("--no-jaw-motion", action="store_true",
+                    help="the jaw shapes at 0 (ICT's partial jaw blends bend the rigid teeth, which a rigid jaw "
+                         "cannot follow): the same expressions and head motion otherwise")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--previous", action="store_true", help="also the default preset as it was before issue 12")
     ap.add_argument("--fixed-prior", action="store_true",
@@ -183,7 +194,8 @@ def main(argv: list[str] | None = None) -> dict:
         configs, args.no_bound, args.paper_frames, args.paper_iterations = [(100, 0.5)], False, 2, 5
     training, held_out = sample_actor_split(SAMPLE_JSON)
     ident = load_ict_identity(Path(args.ict), identity_coeffs(args.identity, Path(args.ict)))
-    perf = make_performance(ident, held_out, args.sequences, args.frames, seed=args.seed)
+    pool = [n for n in training if not n.startswith("jaw")] if args.in_span else held_out
+    perf = make_performance(ident, pool, args.sequences, args.frames, seed=args.seed, jaw=not args.no_jaw_motion)
     actor = load_actor(args.actor)
     faces = np.asarray(actor.template.faces)
     masks = region_masks(ident)
@@ -195,7 +207,8 @@ def main(argv: list[str] | None = None) -> dict:
         bases["GBS53 [0,1] (bound)"] = np.stack(list(ident.deltas.values()))
     paper = replace(FIT_PRESETS["paper"], iterations=args.paper_iterations, warm_iterations=None)
     print(f"held-out performance (seed {args.seed}): {json.dumps(perf.describe())}")
-    res = {"performance": perf.describe(), "seed": args.seed, "identity": args.identity, "actor": str(args.actor),
+    res = {"performance": perf.describe(), "seed": args.seed, "identity": args.identity, "jaw_motion": not args.no_jaw_motion,
+           "in_span": args.in_span, "actor": str(args.actor),
            "preset": args.preset,
            "noise_model": args.noise, "settings": settings.to_dict(), "window": args.window, "overlap": args.overlap,
            "configs": []}
@@ -244,8 +257,9 @@ def main(argv: list[str] | None = None) -> dict:
     res["load_average"] = os.getloadavg()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    suffix = ("" if args.noise == "iid" else f"_{args.noise}") + ("" if args.identity == "sample" else
-                                                                   f"_identity_{args.identity}")
+    suffix = (("" if args.noise == "iid" else f"_{args.noise}") + ("" if args.identity == "sample" else
+                                                                    f"_identity_{args.identity}")
+              + ("_no_jaw_motion" if args.no_jaw_motion else "") + ("_in_span" if args.in_span else ""))
     p = out / ("outofspan_quick.json" if args.quick else f"outofspan_seed{args.seed}{suffix}.json")
     write_text(p, json.dumps(res, indent=1))
     print(f"\nnumbers: {p}")
@@ -280,7 +294,9 @@ def over_seeds(argv: list[str] | None, seeds: list[int], out: Path) -> dict:
     res = {"seeds": seeds, "summary": summary, "per_seed": runs}
     noise, identity = runs[0].get("noise_model", "iid"), runs[0].get("identity", "sample")
     p = out / (f"outofspan_seeds{seeds[0]}-{seeds[-1]}{'' if noise == 'iid' else '_' + noise}"
-               f"{'' if identity == 'sample' else '_identity_' + identity}.json")
+               f"{'' if identity == 'sample' else '_identity_' + identity}"
+               f"{'' if runs[0].get('jaw_motion', True) else '_no_jaw_motion'}"
+               f"{'_in_span' if runs[0].get('in_span') else ''}.json")
     write_text(p, json.dumps(res, indent=1))
     print(f"numbers: {p}")
     return res

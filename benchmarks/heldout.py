@@ -113,11 +113,14 @@ def _bumps(rng: np.random.Generator, T: int, fps: float, peak: float) -> np.ndar
 
 def make_performance(ident: ICTIdentity, held_out: list[str], sequences: int = 4, frames: int = 90,
                      fps: float = 30.0, per_sequence: int = 5, seed: int = 0,
-                     peak: tuple[float, float] = (0.3, 0.8)) -> Performance:
+                     peak: tuple[float, float] = (0.3, 0.8), jaw: bool = True) -> Performance:
     """``sequences`` x ``frames`` frames of held-out expressions + partial jaw shapes + rigid head motion.
 
     Each sequence animates ``per_sequence`` expressions drawn from ``held_out``, each with 1-3 smooth
     activations whose peak weight is drawn uniformly from ``peak`` (times 0.5 .. 1 per activation).
+    ``jaw`` False: the jaw shapes stay at 0 (the same draws otherwise, so the same expressions and head motion).
+    ICT blends a jaw shape linearly: at partial weights its lower teeth, which are rigid, are bent by 0.24 -
+    0.39 mm on average (jawOpen at 0.2 - 0.5), where a real jaw turns them rigidly.
     """
     pool = [n for n in held_out if n not in EXCLUDED and n in ident.deltas]
     if not pool:
@@ -136,6 +139,8 @@ def make_performance(ident: ICTIdentity, held_out: list[str], sequences: int = 4
         side = names.index("jawLeft" if s % 2 == 0 else "jawRight")
         w[:, side] = np.clip(_curve(rng, frames, fps, 1.0, -0.15, JAW_RANGES["jawLeft"]), 0, None)
         eul = np.stack([_curve(rng, frames, fps, 1.0, -a, a) for a in (20.0, 10.0, 6.0)], 1)
+        if not jaw:
+            w[:, [jo, side]] = 0.0
         W.append(np.clip(w, 0, 1))
         R.append(Rotation.from_euler("yxz", eul, degrees=True).as_matrix())
         tr.append(np.stack([_curve(rng, frames, fps, 1.0, -15.0, 15.0) for _ in range(3)], 1))

@@ -92,6 +92,26 @@ def test_heldout_performance_uses_only_held_out_and_partial_jaw_shapes():
     local = (perf.vertices[j] - c - perf.head_t[j]) @ perf.head_R[j] + c
     D = np.stack([ident.deltas[n] for n in perf.names])
     np.testing.assert_allclose(local, ident.neutral + np.tensordot(perf.weights[j], D, axes=1), atol=1e-9)
+    # without jaw motion: the jaw columns are 0 and everything else is the same draw
+    still = make_performance(ident, held_out, sequences=2, frames=20, seed=3, jaw=False)
+    jaw = [k for k, n in enumerate(perf.names) if n in JAW_RANGES]
+    rest = [k for k in range(len(perf.names)) if k not in jaw]
+    assert perf.weights[:, jaw].max() > 0 and still.weights[:, jaw].max() == 0
+    np.testing.assert_array_equal(still.weights[:, rest], perf.weights[:, rest])
+    np.testing.assert_array_equal(still.head_R, perf.head_R)
+
+
+@needs_ict
+def test_identity_b_is_the_sample_mirrored_in_identity_space():
+    """Identity B (the retargeting test's second actor) is the sample's identity coefficients negated: its neutral is
+    the ICT mean face moved by the sample's identity offset the other way."""
+    from benchmarks.heldout import identity_coeffs, load_ict_identity
+
+    sample, b = load_ict_identity(), load_ict_identity(identity_coeffs=identity_coeffs("b"))
+    mean = load_ict_identity(identity_coeffs=np.zeros(100))
+    np.testing.assert_allclose(b.neutral - mean.neutral, -(sample.neutral - mean.neutral), atol=1e-9)
+    assert np.abs(b.neutral - sample.neutral).max() > 1.0          # a different face, by more than a millimetre
+    np.testing.assert_array_equal(b.deltas["jawOpen"], sample.deltas["jawOpen"])   # ICT: expressions do not depend on identity
 
 
 @needs_ict
