@@ -34,7 +34,7 @@ on ``--seed 100`` (different sequences, expressions and noise). JSON to ``--out`
 Controls: ``--identity b --actor B`` plays the performance in a second ICT identity's face (for an actor learned from
 that identity's shapes); ``--in-span`` mixes the actor's own training expressions instead; ``--no-jaw-motion`` keeps
 the jaw shapes at 0 (ICT blends them linearly, which bends the rigid lower teeth at partial weights: a rigid jaw
-cannot follow that).
+cannot follow that); ``--rigid-jaw`` turns them as a jaw does instead (``benchmarks.heldout.RigidJaw``).
 
 Usage:
     python benchmarks/bench_outofspan.py [--sequences 4] [--frames 90] [--configs 1000:0.5,300:0.5] [--quick]
@@ -163,6 +163,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-jaw-motion", action="store_true",
                     help="the jaw shapes at 0 (ICT's partial jaw blends bend the rigid teeth, which a rigid jaw "
                          "cannot follow): the same expressions and head motion otherwise")
+    ap.add_argument("--rigid-jaw", action="store_true",
+                    help="the jaw shapes turn as a jaw does (the lower teeth's rigid motion, followed by the skin in "
+                         "part; the same shapes at weight 0 and 1) instead of ICT's linear blend")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--previous", action="store_true", help="also the default preset as it was before issue 12")
     ap.add_argument("--fixed-prior", action="store_true",
@@ -195,7 +198,8 @@ def main(argv: list[str] | None = None) -> dict:
     training, held_out = sample_actor_split(SAMPLE_JSON)
     ident = load_ict_identity(Path(args.ict), identity_coeffs(args.identity, Path(args.ict)))
     pool = [n for n in training if not n.startswith("jaw")] if args.in_span else held_out
-    perf = make_performance(ident, pool, args.sequences, args.frames, seed=args.seed, jaw=not args.no_jaw_motion)
+    perf = make_performance(ident, pool, args.sequences, args.frames, seed=args.seed, jaw=not args.no_jaw_motion,
+                            rigid_jaw=args.rigid_jaw)
     actor = load_actor(args.actor)
     faces = np.asarray(actor.template.faces)
     masks = region_masks(ident)
@@ -208,6 +212,7 @@ def main(argv: list[str] | None = None) -> dict:
     paper = replace(FIT_PRESETS["paper"], iterations=args.paper_iterations, warm_iterations=None)
     print(f"held-out performance (seed {args.seed}): {json.dumps(perf.describe())}")
     res = {"performance": perf.describe(), "seed": args.seed, "identity": args.identity, "jaw_motion": not args.no_jaw_motion,
+           "rigid_jaw": args.rigid_jaw,
            "in_span": args.in_span, "actor": str(args.actor),
            "preset": args.preset,
            "noise_model": args.noise, "settings": settings.to_dict(), "window": args.window, "overlap": args.overlap,
@@ -259,7 +264,8 @@ def main(argv: list[str] | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     suffix = (("" if args.noise == "iid" else f"_{args.noise}") + ("" if args.identity == "sample" else
                                                                     f"_identity_{args.identity}")
-              + ("_no_jaw_motion" if args.no_jaw_motion else "") + ("_in_span" if args.in_span else ""))
+              + ("_no_jaw_motion" if args.no_jaw_motion else "") + ("_rigid_jaw" if args.rigid_jaw else "")
+              + ("_in_span" if args.in_span else ""))
     p = out / ("outofspan_quick.json" if args.quick else f"outofspan_seed{args.seed}{suffix}.json")
     write_text(p, json.dumps(res, indent=1))
     print(f"\nnumbers: {p}")
@@ -296,6 +302,7 @@ def over_seeds(argv: list[str] | None, seeds: list[int], out: Path) -> dict:
     p = out / (f"outofspan_seeds{seeds[0]}-{seeds[-1]}{'' if noise == 'iid' else '_' + noise}"
                f"{'' if identity == 'sample' else '_identity_' + identity}"
                f"{'' if runs[0].get('jaw_motion', True) else '_no_jaw_motion'}"
+               f"{'_rigid_jaw' if runs[0].get('rigid_jaw') else ''}"
                f"{'_in_span' if runs[0].get('in_span') else ''}.json")
     write_text(p, json.dumps(res, indent=1))
     print(f"numbers: {p}")

@@ -21,7 +21,7 @@ face front).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,7 @@ N_IDENTITY = 100               # the Light model's identity modes
 CM_TO_MM = 10.0
 DEFAULT_ICT = ICT_LIGHT_NPZ    # benchmarks.assets: $CAPTURE_SHARED_ASSETS or ../shared/assets
 JAW_RANGES = {"jawOpen": 0.45, "jawLeft": 0.3, "jawRight": 0.3}
+LOWER_TEETH = slice(19247, 21451)   # ICT's lower teeth (derived/jaw_rigid_from_lower_teeth.json): rigid in every shape
 EXCLUDED = ("mouthClose",)
 
 
@@ -45,6 +46,49 @@ class ICTIdentity:
 
     neutral: np.ndarray                 # (V, 3) mm
     deltas: dict[str, np.ndarray]       # name -> (V, 3) mm, all 53 ICT expressions
+    jaws: dict[str, "RigidJaw"] = field(default_factory=dict)   # the jaw shapes as turns of the lower teeth
+
+
+@dataclass
+class RigidJaw:
+    """A jaw shape as a real jaw makes it: a rigid motion of the lower teeth, which the skin follows in part.
+
+    ``log (4, 4)`` is the matrix logarithm of the teeth's rigid motion at full weight; at weight ``w`` they move by
+    ``expm(w log)``, the screw motion that turns and slides them by ``w`` times as much (pure rotation about a
+    fixed axis for a pure turn, a straight slide for a pure shift). ``follow (V,)`` in [0, 1] is the share of each
+    face vertex's full-weight motion along that rigid motion and ``rest (V, 3)`` the motion beyond it (mm), so
+    that at weight 1 the shape is ICT's own delta exactly."""
+
+    log: np.ndarray
+    follow: np.ndarray
+    rest: np.ndarray
+
+    def displacement(self, neutral: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """``(T, V, 3)`` mm at weights ``w (T,)``: the skin's share of the teeth's rigid motion by ``w``, plus ``w``
+        times the rest. ICT's linear blend instead moves every vertex on a straight line, which bends the teeth
+        at partial weights."""
+        from scipy.linalg import expm
+
+        M = np.stack([expm(x * self.log) for x in np.asarray(w, np.float64)])              # (T, 4, 4)
+        moved = np.einsum("tij,vj->tvi", M[:, :3, :3], neutral) + M[:, None, :3, 3]
+        return self.follow[None, :, None] * (moved - neutral) + np.asarray(w)[:, None, None] * self.rest
+
+
+def rigid_jaw(neutral: np.ndarray, delta: np.ndarray, teeth: np.ndarray, teeth_delta: np.ndarray) -> RigidJaw:
+    """:class:`RigidJaw` of a jaw shape from the lower teeth's positions ``teeth (M, 3)`` and motion ``(M, 3)``
+    (Kabsch), for the face ``neutral (V, 3)`` and its delta ``(V, 3)``, mm."""
+    from scipy.linalg import logm
+
+    a, b = teeth, teeth + teeth_delta
+    ca, cb = a.mean(0), b.mean(0)
+    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, cb - R @ ca
+    r = neutral @ R.T + T[:3, 3] - neutral                            # each vertex's motion if it were bone
+    follow = np.clip((delta * r).sum(1) / np.maximum((r * r).sum(1), 1e-12), 0.0, 1.0)
+    return RigidJaw(np.real(logm(T)), follow, delta - follow[:, None] * r)
 
 
 def identity_coeffs(name: str, npz: Path = DEFAULT_ICT) -> np.ndarray:
@@ -68,9 +112,14 @@ def load_ict_identity(npz: Path = DEFAULT_ICT, identity_coeffs: np.ndarray | Non
         c = np.asarray(c, np.float64)[:N_IDENTITY]
         ident = np.tensordot(c, d["identity_deltas"][:N_IDENTITY, :FACE_NV].astype(np.float64), axes=1)
         neutral = (d["neutral"][:FACE_NV] + ident) * CM_TO_MM
-        deltas = {str(n): d["expression_deltas"][i, :FACE_NV].astype(np.float64) * CM_TO_MM
-                  for i, n in enumerate(d["expression_names"])}
-    return ICTIdentity(neutral, deltas)
+        names = [str(n) for n in d["expression_names"]]
+        deltas = {n: d["expression_deltas"][i, :FACE_NV].astype(np.float64) * CM_TO_MM for i, n in enumerate(names)}
+        teeth = (d["neutral"][LOWER_TEETH] + np.tensordot(c, d["identity_deltas"][:N_IDENTITY, LOWER_TEETH].astype(
+            np.float64), axes=1)) * CM_TO_MM
+        jaws = {n: rigid_jaw(neutral, deltas[n], teeth,
+                             d["expression_deltas"][names.index(n), LOWER_TEETH].astype(np.float64) * CM_TO_MM)
+                for n in JAW_RANGES if n in names}
+    return ICTIdentity(neutral, deltas, jaws)
 
 
 @dataclass
@@ -113,14 +162,16 @@ def _bumps(rng: np.random.Generator, T: int, fps: float, peak: float) -> np.ndar
 
 def make_performance(ident: ICTIdentity, held_out: list[str], sequences: int = 4, frames: int = 90,
                      fps: float = 30.0, per_sequence: int = 5, seed: int = 0,
-                     peak: tuple[float, float] = (0.3, 0.8), jaw: bool = True) -> Performance:
+                     peak: tuple[float, float] = (0.3, 0.8), jaw: bool = True, rigid_jaw: bool = False
+                     ) -> Performance:
     """``sequences`` x ``frames`` frames of held-out expressions + partial jaw shapes + rigid head motion.
 
     Each sequence animates ``per_sequence`` expressions drawn from ``held_out``, each with 1-3 smooth
     activations whose peak weight is drawn uniformly from ``peak`` (times 0.5 .. 1 per activation).
     ``jaw`` False: the jaw shapes stay at 0 (the same draws otherwise, so the same expressions and head motion).
     ICT blends a jaw shape linearly: at partial weights its lower teeth, which are rigid, are bent by 0.24 -
-    0.39 mm on average (jawOpen at 0.2 - 0.5), where a real jaw turns them rigidly.
+    0.39 mm on average (jawOpen at 0.2 - 0.5), where a real jaw turns them rigidly. ``rigid_jaw``: the jaw shapes
+    turn as a jaw does instead (:class:`RigidJaw`; the same shapes at weight 0 and 1, the same draws).
     """
     pool = [n for n in held_out if n not in EXCLUDED and n in ident.deltas]
     if not pool:
@@ -146,7 +197,14 @@ def make_performance(ident: ICTIdentity, held_out: list[str], sequences: int = 4
         tr.append(np.stack([_curve(rng, frames, fps, 1.0, -15.0, 15.0) for _ in range(3)], 1))
         seq.append(np.full(frames, s))
     W, R, tr = np.concatenate(W), np.concatenate(R), np.concatenate(tr)
-    local = ident.neutral + np.einsum("tk,kvc->tvc", W, D) - centre
+    jaw_cols = [k for k, n in enumerate(names) if n in JAW_RANGES]
+    linear = W.copy()
+    if rigid_jaw:
+        linear[:, jaw_cols] = 0.0
+    local = ident.neutral + np.einsum("tk,kvc->tvc", linear, D) - centre
+    if rigid_jaw:
+        for k in jaw_cols:
+            local += ident.jaws[names[k]].displacement(ident.neutral, W[:, k])
     verts = np.einsum("tij,tvj->tvi", R, local) + centre + tr[:, None]
     return Performance(verts, names, W, R, tr, np.concatenate(seq), fps)
 

@@ -99,6 +99,36 @@ def test_heldout_performance_uses_only_held_out_and_partial_jaw_shapes():
     assert perf.weights[:, jaw].max() > 0 and still.weights[:, jaw].max() == 0
     np.testing.assert_array_equal(still.weights[:, rest], perf.weights[:, rest])
     np.testing.assert_array_equal(still.head_R, perf.head_R)
+    # a jaw that turns: the same draws, the same shapes at weight 0 and 1, and rigid teeth in between
+    turned = make_performance(ident, held_out, sequences=2, frames=20, seed=3, rigid_jaw=True)
+    np.testing.assert_array_equal(turned.weights, perf.weights)
+    gap = np.linalg.norm(turned.vertices - perf.vertices, axis=2).max(1)
+    assert gap.max() > 0.1 and np.all(gap[perf.weights[:, jaw].max(1) == 0] < 1e-9)
+
+
+def test_rigid_jaw_turns_half_way_about_its_axis_at_half_weight():
+    """A jaw shape made by turning points 24 degrees about an axis through a pivot (and sliding 1 mm along it):
+    at weight 0.5 :class:`RigidJaw` turns them 12 degrees and slides 0.5 mm (scipy's rotation as the reference),
+    where a linear blend would cut the chord; at 0 and 1 it is exact. A vertex that does not move keeps still."""
+    from scipy.spatial.transform import Rotation
+
+    from benchmarks.heldout import rigid_jaw
+
+    rng = np.random.default_rng(0)
+    teeth = rng.normal(0.0, 20.0, (50, 3))
+    pivot, axis = np.array([3.0, -40.0, -60.0]), np.array([0.9, 0.1, 0.2]) / np.linalg.norm([0.9, 0.1, 0.2])
+    motion = lambda p, f: (Rotation.from_rotvec(f * np.radians(24.0) * axis).apply(p - pivot) + pivot
+                           + f * 1.0 * axis)
+    face = np.vstack([rng.normal(0.0, 30.0, (20, 3)), [[0.0, 0.0, 0.0]]])
+    delta = motion(face, 1.0) - face
+    delta[-1] = 0.0                                                    # one vertex the jaw does not move
+    jaw = rigid_jaw(face, delta, teeth, motion(teeth, 1.0) - teeth)
+    d = jaw.displacement(face, np.array([0.0, 0.5, 1.0]))
+    np.testing.assert_allclose(d[0], 0.0, atol=1e-9)
+    np.testing.assert_allclose(d[2], delta, atol=1e-9)
+    np.testing.assert_allclose(d[1, :-1], motion(face[:-1], 0.5) - face[:-1], atol=1e-9)
+    np.testing.assert_allclose(d[1, -1], 0.0, atol=1e-9)
+    assert np.abs(d[1, :-1] - 0.5 * delta[:-1]).max() > 1.0           # not the linear blend
 
 
 @needs_ict
