@@ -74,7 +74,7 @@ class RigidJaw:
         return self.follow[None, :, None] * (moved - neutral) + np.asarray(w)[:, None, None] * self.rest
 
 
-def rigid_jaw(neutral: np.ndarray, delta: np.ndarray, teeth: np.ndarray, teeth_delta: np.ndarray) -> RigidJaw:
+def make_rigid_jaw(neutral: np.ndarray, delta: np.ndarray, teeth: np.ndarray, teeth_delta: np.ndarray) -> RigidJaw:
     """:class:`RigidJaw` of a jaw shape from the lower teeth's positions ``teeth (M, 3)`` and motion ``(M, 3)``
     (Kabsch), for the face ``neutral (V, 3)`` and its delta ``(V, 3)``, mm."""
     from scipy.linalg import logm
@@ -116,8 +116,8 @@ def load_ict_identity(npz: Path = DEFAULT_ICT, identity_coeffs: np.ndarray | Non
         deltas = {n: d["expression_deltas"][i, :FACE_NV].astype(np.float64) * CM_TO_MM for i, n in enumerate(names)}
         teeth = (d["neutral"][LOWER_TEETH] + np.tensordot(c, d["identity_deltas"][:N_IDENTITY, LOWER_TEETH].astype(
             np.float64), axes=1)) * CM_TO_MM
-        jaws = {n: rigid_jaw(neutral, deltas[n], teeth,
-                             d["expression_deltas"][names.index(n), LOWER_TEETH].astype(np.float64) * CM_TO_MM)
+        jaws = {n: make_rigid_jaw(neutral, deltas[n], teeth,
+                                  d["expression_deltas"][names.index(n), LOWER_TEETH].astype(np.float64) * CM_TO_MM)
                 for n in JAW_RANGES if n in names}
     return ICTIdentity(neutral, deltas, jaws)
 

@@ -112,7 +112,7 @@ def test_rigid_jaw_turns_half_way_about_its_axis_at_half_weight():
     where a linear blend would cut the chord; at 0 and 1 it is exact. A vertex that does not move keeps still."""
     from scipy.spatial.transform import Rotation
 
-    from benchmarks.heldout import rigid_jaw
+    from benchmarks.heldout import make_rigid_jaw
 
     rng = np.random.default_rng(0)
     teeth = rng.normal(0.0, 20.0, (50, 3))
@@ -122,7 +122,7 @@ def test_rigid_jaw_turns_half_way_about_its_axis_at_half_weight():
     face = np.vstack([rng.normal(0.0, 30.0, (20, 3)), [[0.0, 0.0, 0.0]]])
     delta = motion(face, 1.0) - face
     delta[-1] = 0.0                                                    # one vertex the jaw does not move
-    jaw = rigid_jaw(face, delta, teeth, motion(teeth, 1.0) - teeth)
+    jaw = make_rigid_jaw(face, delta, teeth, motion(teeth, 1.0) - teeth)
     d = jaw.displacement(face, np.array([0.0, 0.5, 1.0]))
     np.testing.assert_allclose(d[0], 0.0, atol=1e-9)
     np.testing.assert_allclose(d[2], delta, atol=1e-9)
