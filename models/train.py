@@ -239,6 +239,7 @@ class Evaluation:
     normal_deg: float         # mean angle between n~ and n on constrained points
     symmetry_mm: float        # mean ||B(R(c)) - R(B(c))|| over template points
     forehead_k: float         # mean |k| on the forehead region
+    jaw_vertices: int = 0     # template points that follow the jaw (skinning weight k > 0.5)
 
     @property
     def mean_mm(self) -> float:
@@ -615,6 +616,7 @@ class ActorTrainer:
             thickness_mm=float((con.thickness - d.thickness_target).abs().mean()) if len(cosang) else float("nan"),
             normal_deg=float(torch.rad2deg(torch.arccos(cosang)).mean()) if len(cosang) else float("nan"),
             symmetry_mm=float(sym.mean()), forehead_k=float(fore.abs().mean()),
+            jaw_vertices=int((anatomy.skin_weight > 0.5).sum()),
         )
 
     def weights(self) -> dict:

@@ -54,6 +54,7 @@ def test_tiny_actor_learns_its_shapes(trained):
     k = anatomy.skin_weight.detach().numpy()
     y = actor.template.vertices[:, 1]
     assert k[y < -70].mean() > 0.5 and abs(k[y > 40].mean()) < 0.1
+    assert meta["quality"]["jaw_vertices"] == int((k > 0.5).sum()) > 0      # the package counts what follows the jaw
 
 
 def test_package_files_are_safe_and_rotations_are_matrices(trained):
@@ -76,6 +77,8 @@ def test_show_and_list(trained, capsys, monkeypatch):
     out = capsys.readouterr().out
     for token in ("jawOpen", "mean error mm", "anatomy residuals", "symmetry residual", "forehead"):
         assert token in out
+    assert re.search(r"jaw: \d+ of \d+ template vertices follow it", " ".join(out.split())), out
+    assert "no template vertex follows the jaw" not in out
     # the training time (wall and CPU) stays in the report (issue 13)
     flat = " ".join(out.split())  # the console wraps long lines
     assert re.search(r"training: preset \w+, \d+ iterations, .* [\d.]+ min on cpu \([\d.]+ min CPU", flat), out
@@ -86,6 +89,22 @@ def test_show_and_list(trained, capsys, monkeypatch):
     assert "tiny" in capsys.readouterr().out
     assert main(["actor", "show", "tiny", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["name"] == "tiny"
+
+
+def test_an_actor_on_estimated_bones_says_it_has_no_jaw(tmp_path, capsys):
+    """Without --skull and --jaw the estimated bone surface has no jaw part, so nothing ties a point to the jaw and
+    no template vertex comes to follow it: training and `capture actor show` say so, and what to give instead."""
+    shapes, _, _ = write_tiny_actor_inputs(tmp_path)
+    actor = tmp_path / "actors" / "nojaw"
+    assert main(["actor", "train", str(actor), "--shapes", str(shapes), "--iterations", "40", *FAST]) == 0
+    trained_out = " ".join(capsys.readouterr().out.split())
+    meta = json.loads((actor / "actor.json").read_text())
+    assert meta["anatomy_constraints"]["bones_estimated"] and meta["quality"]["jaw_vertices"] == 0
+    k = load_actor(str(actor)).at_template().skin_weight.detach().numpy()
+    assert k.max() <= 0.5                                   # the figure is the networks' own
+    assert main(["actor", "show", str(actor)]) == 0
+    for out in (trained_out, " ".join(capsys.readouterr().out.split())):
+        assert "no template vertex follows the jaw" in out and "give --skull and --jaw" in out
 
 
 def test_existing_actor_needs_overwrite(trained, capsys):

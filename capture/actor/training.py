@@ -290,7 +290,7 @@ def _evaluation_metadata(ev: Evaluation, names: list[str]) -> dict:
         "per_shape": {n: {"mean_mm": m, "max_mm": x} for n, m, x in zip(names, ev.shape_mean_mm, ev.shape_max_mm)},
         "mean_mm": ev.mean_mm, "max_mm": max(ev.shape_max_mm),
         "anatomy": {"bone_mm": ev.bone_mm, "thickness_mm": ev.thickness_mm, "normal_deg": ev.normal_deg},
-        "symmetry_mm": ev.symmetry_mm, "forehead_k": ev.forehead_k,
+        "symmetry_mm": ev.symmetry_mm, "forehead_k": ev.forehead_k, "jaw_vertices": ev.jaw_vertices,
     }
 
 

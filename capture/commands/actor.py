@@ -195,6 +195,15 @@ def _show_metadata(actor, meta: dict, console: Console) -> None:
     console.print(f"anatomy residuals on constrained points: bone {a['bone_mm']:.3f} mm, thickness "
                   f"{a['thickness_mm']:.3f} mm, normal {a['normal_deg']:.2f} deg")
     console.print(f"symmetry residual of B: {q['symmetry_mm']:.3f} mm; forehead skinning weight |k|: {q['forehead_k']:.4f}")
+    if "jaw_vertices" in q:       # actors trained before it was recorded have no such figure
+        if q["jaw_vertices"]:
+            console.print(f"jaw: {q['jaw_vertices']} of {meta['n_vertices']} template vertices follow it (skinning "
+                          f"weight > 0.5)", highlight=False)
+        else:
+            console.print("[yellow]warning:[/] no template vertex follows the jaw (skinning weight > 0.5 nowhere): this "
+                          "actor opens its mouth by displacements, as a blendshape rig does, and does not turn a jaw"
+                          + ("; the estimated bones have no jaw, so give --skull and --jaw for an anatomical one"
+                             if con.get("bones_estimated") else ""), highlight=False)
     s = tr["settings"]
     console.print(f"training: preset {tr['preset']}, {tr['iterations']} iterations, width {s['width']}, depth {s['depth']}, "
                   f"lr {s['lr']}, {tr['train_seconds'] / 60:.1f} min on {tr['device']}"
