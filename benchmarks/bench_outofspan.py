@@ -262,14 +262,19 @@ def main(argv: list[str] | None = None) -> dict:
     res["load_average"] = os.getloadavg()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    suffix = (("" if args.noise == "iid" else f"_{args.noise}") + ("" if args.identity == "sample" else
-                                                                    f"_identity_{args.identity}")
-              + ("_no_jaw_motion" if args.no_jaw_motion else "") + ("_rigid_jaw" if args.rigid_jaw else "")
-              + ("_in_span" if args.in_span else ""))
-    p = out / ("outofspan_quick.json" if args.quick else f"outofspan_seed{args.seed}{suffix}.json")
+    p = out / ("outofspan_quick.json" if args.quick else f"outofspan_seed{args.seed}{variant_suffix(res)}.json")
     write_text(p, json.dumps(res, indent=1))
     print(f"\nnumbers: {p}")
     return res
+
+
+def variant_suffix(res: dict) -> str:
+    """What a result's file name says beyond its seeds: the noise model, the identity and the controls that are
+    not the default (``_detector``, ``_identity_b``, ``_no_jaw_motion``, ``_rigid_jaw``, ``_in_span``)."""
+    noise, identity = res.get("noise_model", "iid"), res.get("identity", "sample")
+    return ((f"_{noise}" if noise != "iid" else "") + (f"_identity_{identity}" if identity != "sample" else "")
+            + ("" if res.get("jaw_motion", True) else "_no_jaw_motion") + ("_rigid_jaw" if res.get("rigid_jaw") else "")
+            + ("_in_span" if res.get("in_span") else ""))
 
 
 def over_seeds(argv: list[str] | None, seeds: list[int], out: Path) -> dict:
@@ -298,12 +303,7 @@ def over_seeds(argv: list[str] | None, seeds: list[int], out: Path) -> dict:
             print(f"  {name:42s} mean {allv.mean():.3f} mm, median {np.median(allv):.3f} over {len(allv)} "
                   f"sequences; per seed " + " / ".join(f"{np.mean(v):.3f}" for v in per_seed.values()))
     res = {"seeds": seeds, "summary": summary, "per_seed": runs}
-    noise, identity = runs[0].get("noise_model", "iid"), runs[0].get("identity", "sample")
-    p = out / (f"outofspan_seeds{seeds[0]}-{seeds[-1]}{'' if noise == 'iid' else '_' + noise}"
-               f"{'' if identity == 'sample' else '_identity_' + identity}"
-               f"{'' if runs[0].get('jaw_motion', True) else '_no_jaw_motion'}"
-               f"{'_rigid_jaw' if runs[0].get('rigid_jaw') else ''}"
-               f"{'_in_span' if runs[0].get('in_span') else ''}.json")
+    p = out / f"outofspan_seeds{seeds[0]}-{seeds[-1]}{variant_suffix(runs[0])}.json"
     write_text(p, json.dumps(res, indent=1))
     print(f"numbers: {p}")
     return res

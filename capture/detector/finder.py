@@ -250,12 +250,16 @@ class OnnxFaceFinder(FaceFinder):
         return found[0][0] if found else None
 
 
+def _unbatched(shape, k: int) -> bool:
+    """Whether an output that holds ``k`` anchor rows has no batch axis: ``(k,)`` or ``(k, D)``, as SCRFD's
+    single-image export gives them; anything else has the batch first."""
+    return bool(shape) and shape[0] == k and len(shape) <= 2
+
+
 def _part_dims(shape, k: int) -> list | None:
     """The per-anchor dimensions (size-1 ones dropped) of an output that holds ``k`` anchor rows, or None
-    when it cannot: ``(k, ...)`` of rank <= 2 has no batch axis, anything else has one first."""
-    dims = list(shape)
-    if not (dims and dims[0] == k and len(dims) <= 2):
-        dims = dims[1:]
+    when it cannot (:func:`_unbatched` says whether the first axis is the batch)."""
+    dims = list(shape) if _unbatched(shape, k) else list(shape)[1:]
     dims = [d for d in dims if d != 1]
     if not dims or (dims[0] is not None and dims[0] != k):
         return None
@@ -267,8 +271,8 @@ def _stack_parts(arrays, names, rows: list[int], label: str) -> np.ndarray:
     out = []
     for a, name, k in zip(arrays, names, rows):
         a = np.asarray(a, dtype=np.float64)
-        if not (a.ndim and a.shape[0] == k and a.ndim <= 2):
-            a = a[0] if a.ndim else a                      # the first image of a batch
+        if a.ndim and not _unbatched(a.shape, k):
+            a = a[0]                                       # the first image of a batch
         if a.size == 0 or a.size % k:
             raise CaptureError(f"face detector {label}: output '{name}' {fmt_shape(np.shape(a))} does not hold "
                                f"the {k} anchors of its layer; fix the spec's anchors")
