@@ -34,8 +34,12 @@ How :func:`estimate_face_frame` finds them
    nose tip is the most forward point; above it the nasal bridge falls back gently, below it the
    columella and upper lip fall back steeply (about 5-8 mm versus 15-20 mm at 15 mm from the tip).
    The side whose profile recedes less at 8, 12 and 16 mm from the tip is "up". If the profile is
-   inconclusive (a difference under 1 mm), the fallback is the side with the larger extent from the
-   nose tip (the cranium side is longer than the chin side on a face mask), with a warning.
+   inconclusive (a difference under 1 mm), the closed lips decide where the mesh has them: vertices where
+   the surface touches itself (:mod:`models.touching`) within 10 mm of the symmetry plane, whose median
+   lies at least 15 mm from the nose tip, are below it (on ICT's identity B the profile differs by 0.53
+   mm and the lips lie 35 mm from the tip). Without closed lips, the side with the larger extent from
+   the nose tip is up (the cranium side is longer than the chin side on most face masks; not on
+   identity B, whose chin and neck reach farther). Either fallback warns.
 4. ``n`` is then set to ``up x forward`` so the frame is right-handed (n points to the face's left).
 
 The forehead region and the jaw pivot are anchored on detected midline landmarks (nose tip,
@@ -56,6 +60,11 @@ from scipy.spatial.transform import Rotation
 from capture.io.errors import CaptureError
 
 log = logging.getLogger(__name__)
+
+MOUTH_BAND_MM = 10.0
+"""The lips that tell up from down when the nose cannot lie within this distance of the symmetry plane."""
+MOUTH_BELOW_TIP_MM = 15.0
+"""... and at least this far from the nose tip along the midline (the lips are 25-40 mm below it)."""
 
 __all__ = [
     "FaceFrame",
@@ -330,10 +339,21 @@ def _midline(v: np.ndarray, n: np.ndarray, d: float, band_mm: float) -> np.ndarr
     return band
 
 
+def _midline_contact(v: np.ndarray, f: np.ndarray, n: np.ndarray, d: float, band_mm: float) -> np.ndarray:
+    """(K,3) the vertices where the surface touches itself (:func:`models.touching.touching_pairs`) within
+    ``band_mm`` of the symmetry plane: the closed lips, where a face mask has them."""
+    from models.touching import touching_pairs
+
+    idx = np.unique(touching_pairs(v, f))
+    return v[idx[np.abs(v[idx] @ n - d) <= band_mm]]
+
+
 def _up_sign_from_nose(
-    v: np.ndarray, n: np.ndarray, d: float, up0: np.ndarray, fwd: np.ndarray, band_mm: float
+    v: np.ndarray, n: np.ndarray, d: float, up0: np.ndarray, fwd: np.ndarray, band_mm: float,
+    faces: np.ndarray | None = None,
 ) -> tuple[float, float]:
-    """+1 if up0 points to the forehead, -1 if not; and the profile evidence in mm."""
+    """+1 if up0 points to the forehead, -1 if not; and the profile evidence in mm (``faces``: the triangles,
+    for the lips of the fallback)."""
     band = _midline(v, n, d, band_mm)
     h, f = v[band] @ up0, v[band] @ fwd
     tip = int(np.argmax(f))
@@ -345,7 +365,18 @@ def _up_sign_from_nose(
     evidence = float(np.sum(below[ok] - above[ok])) if ok.any() else 0.0
     if abs(evidence) >= 1.0:
         return (1.0 if evidence > 0 else -1.0), evidence
-    # fallback: the cranium side of a face mask extends farther from the nose tip than the chin side
+    # fallback 1: closed lips, on the midline and at least MOUTH_BELOW_TIP_MM from the nose tip, are below it
+    lips = _midline_contact(v, faces, n, d, MOUTH_BAND_MM) if faces is not None else np.zeros((0, 3))
+    if len(lips) >= 3:
+        below_tip = h0 - float(np.median(lips @ up0))
+        if abs(below_tip) >= MOUTH_BELOW_TIP_MM:
+            log.warning(
+                "face frame: the nose profile does not tell up from down (%.2f mm); the closed lips, %.0f mm from "
+                "the nose tip along the midline, are taken to be below it. Pass the frame explicitly if this is "
+                "wrong.", evidence, abs(below_tip),
+            )
+            return (1.0 if below_tip > 0 else -1.0), evidence
+    # fallback 2: the cranium side of a face mask extends farther from the nose tip than the chin side
     ext_up = h.max() - h0
     ext_down = h0 - h.min()
     log.warning(
@@ -400,7 +431,7 @@ def estimate_face_frame(
         )
     fwd = fwd / np.linalg.norm(fwd)
     up0 = np.cross(fwd, n)
-    sign, _ = _up_sign_from_nose(v, n, d, up0, fwd, band_mm)
+    sign, _ = _up_sign_from_nose(v, n, d, up0, fwd, band_mm, f)
     up = sign * up0
     left = np.cross(up, fwd)  # right-handed: n = up x forward
     if left @ n < 0:
@@ -499,22 +530,25 @@ def estimate_jaw_pivot(
     jaw: Any | None = None,
     *,
     condyle_fraction: float = 0.02,
-    tip_to_condyle_back_mm: float = 105.0,
-    tip_to_condyle_up_mm: float = 15.0,
+    tip_to_axis_back_mm: float = 105.0,
+    tip_to_axis_up_mm: float = -15.0,
 ) -> np.ndarray:
-    """(3,) a jaw rotation centre on the temporomandibular joint axis, in mm.
+    """(3,) a jaw rotation centre, in mm.
 
     With a jaw mesh: the condyles are the posterior-superior ends of the mandible. On each side of the
     symmetry plane the ``condyle_fraction`` of jaw vertices with the largest (up - forward) score
     (the 45-degree posterior-superior direction) are averaged; the pivot is the midpoint of the two
     condyle centres (it lies on the axis through both joints).
 
-    Without a jaw: an anthropometric estimate relative to the nose tip found on the skin: on the
-    symmetry plane, ``tip_to_condyle_back_mm`` behind and ``tip_to_condyle_up_mm`` above the nose tip.
-    For adults the tragion lies about 110-120 mm behind the nose tip at roughly its height plus
-    15-20 mm (Farkas' head and face norms), and the condyle about 10-15 mm in front of the tragion;
-    expect an error of 10-20 mm (head size, tilt of the estimated frame), so the caller should
-    report this value as an estimate.
+    Without a jaw: an anthropometric estimate of the axis of a wide opening, relative to the nose tip found
+    on the skin: on the symmetry plane, ``tip_to_axis_back_mm`` behind and ``-tip_to_axis_up_mm`` below the
+    nose tip. For adults the tragion lies about 110-120 mm behind the nose tip at roughly its height plus
+    15-20 mm (Farkas' head and face norms), and the condyle 10-15 mm in front of the tragion; but the condyle
+    slides forward as the jaw opens, so the one rotation that best turns the mandible from closed to open
+    is about an axis some 30 mm lower, near the mandibular foramen. ICT's lower teeth turn in jawOpen about
+    axes 120 mm behind and 22 mm below the nose tip (the sample's identity) and 103 mm behind and 15 mm
+    below (identity B, the sample's identity coefficients negated). Expect an error of 10-20 mm (head size,
+    tilt of the estimated frame), so the caller should report this value as an estimate.
     """
     if jaw is not None:
         jv = np.asarray(jaw.vertices if hasattr(jaw, "vertices") else jaw, dtype=np.float64)
@@ -534,7 +568,7 @@ def estimate_jaw_pivot(
             centres.append(jv[mask][top].mean(0))
         return 0.5 * (centres[0] + centres[1])
     lm = midline_landmarks(skin_vertices, frame)
-    p = lm.nose_tip - tip_to_condyle_back_mm * frame.forward + tip_to_condyle_up_mm * frame.up
+    p = lm.nose_tip - tip_to_axis_back_mm * frame.forward + tip_to_axis_up_mm * frame.up
     # put it on the symmetry plane
     return p - frame.signed_distance(p) * frame.symmetry_normal
 

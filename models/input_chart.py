@@ -31,9 +31,8 @@ import torch
 from torch import nn
 
 from models.checks import check_shape
+from models.touching import touching_pairs
 
-TOUCH_MM = 1.5
-"""Vertices closer than this in the neutral, and not sharing a triangle, count as touching."""
 TEAR_FACTOR = 5.0
 """A touching pair tears in a shape where its distance grows past this factor (and past ``TEAR_MIN_MM``)."""
 TEAR_MIN_MM = 2.0
@@ -51,28 +50,33 @@ class Tearing:
     worst_mm: tuple[float, float]  # the most torn pair: distance in the neutral and in the shape
 
 
+def parted_vertices(shapes: np.ndarray, pairs: np.ndarray) -> list[np.ndarray]:
+    """For each shape of ``shapes (N, V, 3)`` mm (neutral first), the vertex indices of the touching ``pairs``
+    (:func:`touching_pairs`) that tear in it (move apart past ``TEAR_FACTOR`` times and ``TEAR_MIN_MM``)."""
+    s = np.asarray(shapes, dtype=np.float64)
+    if not len(pairs):
+        return [np.zeros(0, dtype=np.int64) for _ in s]
+    return [np.unique(pairs[row]) for row in _tears(s[0], s, pairs)[2]]
+
+
+def _tears(neutral: np.ndarray, shapes: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``pairs``' distances in the neutral ``(K,)`` and in each shape ``(N, K)``, and which tear ``(N, K)``."""
+    d0 = np.linalg.norm(neutral[pairs[:, 0]] - neutral[pairs[:, 1]], axis=-1)
+    dk = np.linalg.norm(shapes[:, pairs[:, 0]] - shapes[:, pairs[:, 1]], axis=-1)
+    return d0, dk, (dk > TEAR_FACTOR * d0) & (dk > TEAR_MIN_MM)
+
+
 def tearing_shape(neutral: np.ndarray, faces: np.ndarray, shapes: np.ndarray) -> Tearing:
     """The shape in which most touching vertex pairs of the neutral move apart.
 
     Args:
         neutral: ``(V, 3)`` mm; faces: ``(F, 3)`` vertex indices; shapes: ``(N, V, 3)`` mm, neutral first.
     """
-    from scipy.spatial import cKDTree
-
     neutral = np.asarray(neutral, dtype=np.float64)
-    pairs = cKDTree(neutral).query_pairs(TOUCH_MM, output_type="ndarray")
-    if len(pairs):
-        f = np.asarray(faces, dtype=np.int64)
-        edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-        adjacent = {(int(a), int(b)) for a, b in np.sort(edges, axis=1)}  # a triangle's two vertices
-        pairs = np.sort(pairs, axis=1)
-        pairs = pairs[[(int(a), int(b)) not in adjacent for a, b in pairs]]
+    pairs = touching_pairs(neutral, faces)
     if not len(pairs):
         return Tearing(None, 0, 0, (0.0, 0.0))
-    d0 = np.linalg.norm(neutral[pairs[:, 0]] - neutral[pairs[:, 1]], axis=-1)
-    s = np.asarray(shapes, dtype=np.float64)
-    dk = np.linalg.norm(s[:, pairs[:, 0]] - s[:, pairs[:, 1]], axis=-1)   # (N, pairs)
-    torn = (dk > TEAR_FACTOR * d0) & (dk > TEAR_MIN_MM)
+    d0, dk, torn = _tears(neutral, np.asarray(shapes, dtype=np.float64), pairs)
     counts = torn.sum(1)
     counts[0] = 0
     k = int(np.argmax(counts))

@@ -91,20 +91,59 @@ def test_show_and_list(trained, capsys, monkeypatch):
     assert json.loads(capsys.readouterr().out)["name"] == "tiny"
 
 
-def test_an_actor_on_estimated_bones_says_it_has_no_jaw(tmp_path, capsys):
-    """Without --skull and --jaw the estimated bone surface has no jaw part, so nothing ties a point to the jaw and
-    no template vertex comes to follow it: training and `capture actor show` say so, and what to give instead."""
+def test_an_actor_without_a_jaw_mesh_reads_its_jaw_from_the_shapes(tmp_path, capsys):
+    """Without --jaw the estimated bone surface has no jaw part; the jaw is read from the shape that opens it
+    (models/jaw_motion.py): the tiny actor's jawOpen, which the training reports and records, and the points
+    that turn come to follow the jaw."""
+    shapes, _, _ = write_tiny_actor_inputs(tmp_path)
+    actor = tmp_path / "actors" / "motionjaw"
+    assert main(["actor", "train", str(actor), "--shapes", str(shapes), "--iterations", "40", *FAST]) == 0
+    trained_out = " ".join(capsys.readouterr().err.split())        # the training's report
+    assert re.search(r"read from the shapes' motion: jawOpen turns it \d+\.\d degrees", trained_out), trained_out
+    meta = json.loads((actor / "actor.json").read_text())
+    src = meta["source"]["jaw_source"]
+    assert src["from"] == "motion" and src["shape"] == "jawOpen" and src["points"] > 0
+    assert meta["anatomy_constraints"]["bones_estimated"] and meta["quality"]["jaw_vertices"] > 0
+    assert main(["actor", "show", str(actor)]) == 0
+    shown = " ".join(capsys.readouterr().out.split())
+    assert "read from the shapes' motion (jawOpen turns it" in shown and "no template vertex follows" not in shown
+
+
+def test_an_actor_without_a_jaw_says_so(tmp_path, capsys):
+    """With --no-jaw-from-motion (or no shape that opens a jaw) nothing ties a point to the jaw and no template
+    vertex comes to follow it: training and `capture actor show` say so, and what to give instead."""
     shapes, _, _ = write_tiny_actor_inputs(tmp_path)
     actor = tmp_path / "actors" / "nojaw"
-    assert main(["actor", "train", str(actor), "--shapes", str(shapes), "--iterations", "40", *FAST]) == 0
-    trained_out = " ".join(capsys.readouterr().out.split())
+    assert main(["actor", "train", str(actor), "--shapes", str(shapes), "--iterations", "40", "--no-jaw-from-motion",
+                 *FAST]) == 0
+    capsys.readouterr()
     meta = json.loads((actor / "actor.json").read_text())
     assert meta["anatomy_constraints"]["bones_estimated"] and meta["quality"]["jaw_vertices"] == 0
+    assert meta["source"]["jaw_source"] == {"from": "none", "why": "--no-jaw-from-motion"}
     k = load_actor(str(actor)).at_template().skin_weight.detach().numpy()
     assert k.max() <= 0.5                                   # the figure is the networks' own
     assert main(["actor", "show", str(actor)]) == 0
-    for out in (trained_out, " ".join(capsys.readouterr().out.split())):
-        assert "no template vertex follows the jaw" in out and "give --skull and --jaw" in out
+    out = " ".join(capsys.readouterr().out.split())
+    assert "no template vertex follows the jaw" in out and "give --jaw (and --skull)" in out
+
+
+def test_unfinished_training_before_the_jaw_from_motion_says_how_to_resume(tmp_path, monkeypatch, capsys):
+    """A training without a jaw mesh interrupted under ``--no-jaw-from-motion`` (or begun before the jaw was read
+    from the shapes: the same fingerprint) is not resumed with another jaw: the run names the flag, which
+    resumes it. A training with a jaw mesh is not concerned (its fingerprint has no such key)."""
+    shapes, _, _ = write_tiny_actor_inputs(tmp_path)
+    args = ["--shapes", str(shapes), "--iterations", "6", *FAST]
+    restore = _interrupt_at(monkeypatch, 3)
+    actor = tmp_path / "a"
+    assert main(["actor", "train", str(actor), *args, "--no-jaw-from-motion"]) == 130
+    restore()
+    capsys.readouterr()
+    assert main(["actor", "train", str(actor), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--no-jaw-from-motion to resume it" in err, err
+    assert main(["actor", "train", str(actor), *args, "--no-jaw-from-motion"]) == 0
+    assert "resuming training" in capsys.readouterr().err
+    assert json.loads((actor / "actor.json").read_text())["source"]["jaw_source"]["from"] == "none"
 
 
 def test_existing_actor_needs_overwrite(trained, capsys):

@@ -35,8 +35,10 @@ from capture.io.signals import sigterm_as_interrupt
 from capture.io.meshes import ShapeSet, load_mesh, load_shape_dir, units_scale
 from models.anatomy_constraints import AnatomyConstraints, compute_anatomy_constraints, default_trusted_region
 from models.bone_estimate import estimate_bone_surface
-from models.face_frame import FaceFrame, estimate_face_frame, estimate_jaw_pivot, forehead_region
-from models.input_chart import Tearing, opened, tearing_shape
+from models.face_frame import FaceFrame, estimate_face_frame, estimate_jaw_pivot, forehead_region, midline_landmarks
+from models.input_chart import Tearing, opened, parted_vertices, tearing_shape
+from models.jaw_motion import find_jaw_opening
+from models.touching import touching_pairs
 from models.mirror import (ONE_SIDED_THRESHOLD, MirrorMap, mirror_displacements, mirror_points, mirrored_name,
                            one_sided, other_side)
 from models.precision import HIDDEN_MATMUL
@@ -66,6 +68,7 @@ class TrainOptions:
     checkpoint_seconds: float = 60.0
     eval_every: int = 50
     mirror: bool = True                  # add the other side of one-sided shapes (models.mirror)
+    jaw_from_motion: bool = True         # without a jaw mesh, read the jaw from the shapes (models.jaw_motion)
 
 
 def resolve_settings(preset: str, overrides: dict) -> TrainSettings:
@@ -228,23 +231,53 @@ def prepare(options: TrainOptions, shapes: ShapeSet, report: Callable[[str], Non
     con = compute_anatomy_constraints(neutral, list(bones.values()), trusted=trusted)
     pivot = estimate_jaw_pivot(frame, neutral.vertices, bones.get("jaw"))
     cpts = _constraint_template_points(con, neutral.vertices, neutral.faces)
-    on_jaw = (con.bone_label == list(bones).index("jaw")) if "jaw" in bones else np.zeros(len(cpts), dtype=bool)
+    at_points = np.einsum("mk,nmkc->nmc", con.barycentric, shapes.vertices[:, neutral.faces[con.face_index]])
+    if "jaw" in bones:
+        on_jaw = con.bone_label == list(bones).index("jaw")
+        jaw_source = {"from": "mesh", "file": str(options.jaw)}
+    elif options.jaw_from_motion:
+        on_jaw, jaw_source = jaw_from_motion(shapes, at_points, frame, pivot, report)
+    else:
+        on_jaw = np.zeros(len(cpts), dtype=bool)
+        jaw_source = {"from": "none", "why": "--no-jaw-from-motion"}
     f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)
     data = TrainingData(
         template=f32(neutral.vertices), shapes=f32(shapes.vertices), constraint_points=f32(cpts),
         bone_target=f32(con.bone_point), thickness_target=f32(con.thickness), normal_target=f32(con.bone_normal),
         forehead_points=f32(neutral.vertices[fore_idx]),
         jaw_points=f32(cpts[on_jaw]),
-        jaw_positions=f32(np.einsum("mk,nmkc->nmc", con.barycentric[on_jaw],
-                                    shapes.vertices[:, neutral.faces[con.face_index[on_jaw]]])),
+        jaw_positions=f32(at_points[:, on_jaw]),
         symmetry_normal=f32(frame.symmetry_normal),
         symmetry_offset=float(frame.symmetry_offset),
     )
     extras = dict(frame=frame, frame_source=frame_source, forehead_idx=fore_idx, forehead_source=fore_source,
-                  bones=bones, bones_estimated=estimated, constraints=con, jaw_pivot=pivot,
+                  bones=bones, bones_estimated=estimated, constraints=con, jaw_pivot=pivot, jaw_source=jaw_source,
                   trusted_source=trusted_source, shapes=shapes, mirrored=mirrored,
                   mirror_asymmetry=asymmetry, tearing=tear)
     return data, extras
+
+
+def jaw_from_motion(shapes: ShapeSet, at_points: np.ndarray, frame: FaceFrame, pivot: np.ndarray,
+                    report: Callable[[str], None]) -> tuple[np.ndarray, dict]:
+    """Without a jaw mesh: which constrained points are jaw, read from the shape that opens the jaw about
+    ``pivot`` (:mod:`models.jaw_motion`) -> ((M,) bool, what for the actor's record).
+
+    ``at_points (N, M, 3)``: the constrained points in every shape (neutral first)."""
+    neutral = shapes.vertices[0]
+    lips = [neutral[ix] for ix in parted_vertices(shapes.vertices, touching_pairs(neutral, shapes.faces))]
+    tip = midline_landmarks(neutral, frame).nose_tip
+    opening = find_jaw_opening(at_points[0], at_points, frame, pivot, tip, lips)
+    if opening is None:
+        report("jaw: no jaw mesh, and no shape opens a jaw (a turn of 5 degrees or more about a lateral axis "
+               "through the estimated pivot), so the actor has no jaw and opens its mouth by displacements; give "
+               "--jaw (and --skull) for one")
+        return np.zeros(at_points.shape[1], dtype=bool), {"from": "none", "why": "no shape opens a jaw"}
+    name = shapes.names[opening.shape]
+    report(f"jaw: no jaw mesh, so it is read from the shapes' motion: {name} turns it {opening.angle_deg:.1f} degrees "
+           f"about the estimated pivot; {int(opening.follows.sum())} of {len(opening.follows)} constrained points "
+           f"turn with it")
+    return opening.follows, {"from": "motion", "shape": name, "angle_deg": opening.angle_deg,
+                             "points": int(opening.follows.sum())}
 
 
 def with_input_chart(data: TrainingData, shapes: ShapeSet, tear: Tearing, fraction: float,
@@ -330,6 +363,9 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
     fingerprint_no_mirror = _fingerprint(inputs, resolved)   # a training without mirrors keeps the fingerprint it had
     if options.mirror:                                         # before they existed, so it still resumes
         resolved["mirror"] = True
+    fingerprint_fixed_jaw = _fingerprint(inputs, resolved)     # likewise a training without a jaw mesh begun
+    if options.jaw is None and options.jaw_from_motion:        # before the jaw was read from the shapes
+        resolved["jaw_from_motion"] = True
     fingerprint = _fingerprint(inputs, resolved)
     train_dir = out / TRAINING_DIR
     ckpt_path = train_dir / "checkpoint.pt"
@@ -341,6 +377,10 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
                 raise CaptureError(f"actor '{options.actor}' has an unfinished training started without mirrored shapes "
                                    f"(--no-mirror, or before they were the default); add --no-mirror to resume it, or "
                                    f"pass --overwrite to start over with them")
+            if not options.overwrite and state.get("fingerprint") == fingerprint_fixed_jaw != fingerprint:
+                raise CaptureError(f"actor '{options.actor}' has an unfinished training started before the jaw was read "
+                                   f"from the shapes' motion; add --no-jaw-from-motion to resume it, or pass --overwrite "
+                                   f"to start over with the jaw")
             # Settings that were the default before: a training begun under one fingerprinted them so (a training
             # without the chart has no input_chart key); the message names the flag that resumes it.
             earlier_defaults = (
@@ -450,7 +490,8 @@ def train_actor(options: TrainOptions, progress: "TrainingProgress | None" = Non
         "source": {"shapes": str(options.shapes), "files": [str(p) for p in shapes.files],
                    "mirrored_shapes": extras["mirrored"], "mirror_asymmetry": extras["mirror_asymmetry"],
                    "units": options.units, "skull": str(options.skull) if options.skull else None,
-                   "jaw": str(options.jaw) if options.jaw else None, "bones_estimated": extras["bones_estimated"]},
+                   "jaw": str(options.jaw) if options.jaw else None, "bones_estimated": extras["bones_estimated"],
+                   "jaw_source": extras["jaw_source"]},
         "model": config.to_dict(),
         "training": {"preset": options.preset, "settings": settings.to_dict(), "iterations": trainer.iteration,
                      "weights_of_iteration": weights_of,

@@ -50,6 +50,7 @@ def train_command(
     input_chart: Optional[float] = typer.Option(None, "--input-chart", help="The networks read each point this fraction of the way to the shape that parts the neutral's touching lips (jawOpen), so that the lips are apart where the networks look; 0 = at the point itself, as in the paper (default: from the preset, 0.3; paper 0)."),
     symmetry_plane: Optional[str] = typer.Option(None, help="Override the estimated symmetry plane: nx,ny,nz,offset_mm."),
     mirror: bool = typer.Option(True, "--mirror/--no-mirror", help="Also learn the other side of one-sided expressions (mouthStretch_L without mouthStretch_R: its scan reflected across the symmetry plane), so that fits can use both sides."),
+    jaw_from_motion: bool = typer.Option(True, "--jaw-from-motion/--no-jaw-from-motion", help="Without --jaw: find the jaw in the shape that opens it (the points that turn with it, and the pivot its turn is about), so that the actor turns a jaw; off, such an actor opens its mouth by displacements."),
     forehead: Optional[Path] = typer.Option(None, help="File of forehead vertex indices (JSON list or integers) overriding the automatic region."),
     trusted: Optional[Path] = typer.Option(None, help="File of vertex indices where skin-to-bone constraints are trusted (default: automatic, away from open borders)."),
     device: str = typer.Option("cpu", help="Torch device, e.g. cpu or cuda."),
@@ -77,7 +78,7 @@ def train_command(
                                       points_per_step=points_per_step, seed=seed, hidden_matmul=hidden_matmul,
                                       input_chart=input_chart),
         symmetry_plane=_parse_plane(symmetry_plane), forehead=forehead, trusted=trusted, device=device,
-        overwrite=overwrite, threads=threads, mirror=mirror)
+        overwrite=overwrite, threads=threads, mirror=mirror, jaw_from_motion=jaw_from_motion)
     console = Console(stderr=True)
     path = train_actor(options, TrainingProgress(enabled=progress), report=lambda m: console.print(m, highlight=False))
     _show(str(path), Console())
@@ -197,13 +198,17 @@ def _show_metadata(actor, meta: dict, console: Console) -> None:
     console.print(f"symmetry residual of B: {q['symmetry_mm']:.3f} mm; forehead skinning weight |k|: {q['forehead_k']:.4f}")
     if "jaw_vertices" in q:       # actors trained before it was recorded have no such figure
         if q["jaw_vertices"]:
+            src = meta["source"].get("jaw_source") or {}
+            how = (f"; read from the shapes' motion ({src['shape']} turns it {src['angle_deg']:.1f} degrees), not from a "
+                   f"jaw mesh" if src.get("from") == "motion" else "")
             console.print(f"jaw: {q['jaw_vertices']} of {meta['n_vertices']} template vertices follow it (skinning "
-                          f"weight > 0.5)", highlight=False)
+                          f"weight > 0.5){how}", highlight=False)
         else:
             console.print("[yellow]warning:[/] no template vertex follows the jaw (skinning weight > 0.5 nowhere): this "
                           "actor opens its mouth by displacements, as a blendshape rig does, and does not turn a jaw"
-                          + ("; the estimated bones have no jaw, so give --skull and --jaw for an anatomical one"
-                             if con.get("bones_estimated") else ""), highlight=False)
+                          + ("; it was trained without a jaw mesh, and no shape opened a jaw that it could read, so "
+                             "give --jaw (and --skull) for an anatomical one" if not meta["source"].get("jaw") else ""),
+                          highlight=False)
     s = tr["settings"]
     console.print(f"training: preset {tr['preset']}, {tr['iterations']} iterations, width {s['width']}, depth {s['depth']}, "
                   f"lr {s['lr']}, {tr['train_seconds'] / 60:.1f} min on {tr['device']}"
