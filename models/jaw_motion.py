@@ -10,9 +10,10 @@ opens the mouth, the skin over the mandible turns with it, and the rest of the f
 
 How :func:`find_jaw_opening` reads it, for each expression shape:
 
-1. **A turn about the pivot.** The skin over a jaw stretches as it turns (on the sample it follows its
-   fitted mandible by 60-110 %), so the skin alone cannot say where the axis is: on ICT's identity B
-   the turns about pivots anywhere in a 160 x 130 mm region behind the face fit the skin about as well
+1. **A turn about the pivot.** The skin over a jaw stretches as it turns (on the sample the points over its
+   fitted mandible follow the rigid turn that fits them best by 64-106 %, the quartiles), so the skin alone
+   cannot say where the axis is: on ICT's identity B the turns about pivots anywhere in a 160 x 130 mm
+   region behind the face fit the skin about as well
    (relative residual 0.21-0.40), and a free fit puts the axis 34 mm from the lower teeth's on the
    sample and 64 mm on B. So the axis passes through the given pivot (the anatomical estimate of
    :func:`~models.face_frame.estimate_jaw_pivot`, 17 and 2 mm from the teeth's axes there), and only
@@ -25,8 +26,7 @@ How :func:`find_jaw_opening` reads it, for each expression shape:
    motion, and it ends within ``fit_tolerance`` of the turn's reach from where the turn puts it.
 2. **A jaw opening** is a turn of at least ``min_angle_deg`` about an axis within ``max_tilt_deg`` of
    the face's lateral axis that moves the chin down (positive about ``symmetry_normal``, by the frame's
-   convention: pursing, funnelling and smiling turn the other way), whose followers lie mostly below
-   the nose tip.
+   convention), whose followers lie mostly below the nose tip.
 3. The widest such opening wins. Every point that follows its motion (step 1's first two conditions,
    lips included) is jaw.
 
