@@ -130,20 +130,11 @@ def test_an_actor_without_a_jaw_says_so(tmp_path, capsys):
 def test_unfinished_training_before_the_jaw_from_motion_says_how_to_resume(tmp_path, monkeypatch, capsys):
     """A training without a jaw mesh interrupted under ``--no-jaw-from-motion`` (or begun before the jaw was read
     from the shapes: the same fingerprint) is not resumed with another jaw: the run names the flag, which
-    resumes it. A training with a jaw mesh is not concerned (its fingerprint has no such key)."""
+    resumes it."""
     shapes, _, _ = write_tiny_actor_inputs(tmp_path)
     args = ["--shapes", str(shapes), "--iterations", "6", *FAST]
-    restore = _interrupt_at(monkeypatch, 3)
-    actor = tmp_path / "a"
-    assert main(["actor", "train", str(actor), *args, "--no-jaw-from-motion"]) == 130
-    restore()
-    capsys.readouterr()
-    assert main(["actor", "train", str(actor), *args]) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "--no-jaw-from-motion to resume it" in err, err
-    assert main(["actor", "train", str(actor), *args, "--no-jaw-from-motion"]) == 0
-    assert "resuming training" in capsys.readouterr().err
-    assert json.loads((actor / "actor.json").read_text())["source"]["jaw_source"]["from"] == "none"
+    meta = _resumes_only_with(tmp_path / "a", args, ["--no-jaw-from-motion"], [], monkeypatch, capsys)
+    assert meta["source"]["jaw_source"]["from"] == "none" and meta["training"]["iterations"] == 6
 
 
 def test_existing_actor_needs_overwrite(trained, capsys):
@@ -166,6 +157,21 @@ def _interrupt_at(monkeypatch, iteration: int):
 
     monkeypatch.setattr(train_mod.ActorTrainer, "step", interrupting_step)
     return lambda: monkeypatch.setattr(train_mod.ActorTrainer, "step", original)
+
+
+def _resumes_only_with(actor, args: list[str], before: list[str], now: list[str], monkeypatch, capsys) -> dict:
+    """Interrupt a training of ``actor`` under ``args + before``; a run under ``args + now`` refuses in one line
+    that names ``before``, which then resumes it to the end. Returns the finished actor's actor.json."""
+    restore = _interrupt_at(monkeypatch, 3)
+    assert main(["actor", "train", str(actor), *args, *before]) == 130
+    restore()
+    capsys.readouterr()
+    assert main(["actor", "train", str(actor), *args, *now]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{' '.join(before)} to resume it" in err, err
+    assert main(["actor", "train", str(actor), *args, *before]) == 0
+    assert "resuming training" in capsys.readouterr().err
+    return json.loads((actor / "actor.json").read_text())
 
 
 def test_interrupted_training_resumes_to_the_same_result(tmp_path, monkeypatch, capsys):
@@ -336,17 +342,7 @@ def test_unfinished_training_without_mirrors_says_how_to_resume(tmp_path, monkey
     fingerprint) is not resumed with other shapes: the default run names ``--no-mirror``, which resumes it."""
     shapes, skull, jaw, _, _ = _one_sided_inputs(tmp_path)
     args = ["--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw), "--iterations", "6", *FAST]
-    restore = _interrupt_at(monkeypatch, 3)
-    actor = tmp_path / "a"
-    assert main(["actor", "train", str(actor), *args, "--no-mirror"]) == 130
-    restore()
-    capsys.readouterr()
-    assert main(["actor", "train", str(actor), *args]) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "--no-mirror to resume it" in err, err
-    assert main(["actor", "train", str(actor), *args, "--no-mirror"]) == 0
-    assert "resuming training" in capsys.readouterr().err
-    meta = json.loads((actor / "actor.json").read_text())
+    meta = _resumes_only_with(tmp_path / "a", args, ["--no-mirror"], [], monkeypatch, capsys)
     assert "smirk_R" not in meta["shape_names"] and meta["training"]["iterations"] == 6
 
 
@@ -362,17 +358,7 @@ def test_unfinished_training_under_an_earlier_default_says_how_to_resume(tmp_pat
     flag, which resumes it."""
     shapes, skull, jaw, _, _ = _one_sided_inputs(tmp_path)
     args = ["--shapes", str(shapes), "--skull", str(skull), "--jaw", str(jaw), "--iterations", "6", *FAST]
-    restore = _interrupt_at(monkeypatch, 3)
-    actor = tmp_path / "a"
-    assert main(["actor", "train", str(actor), *args, *before]) == 130
-    restore()
-    capsys.readouterr()
-    assert main(["actor", "train", str(actor), *args, *now]) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and f"{' '.join(before)} to resume it" in err, err
-    assert main(["actor", "train", str(actor), *args, *before]) == 0
-    assert "resuming training" in capsys.readouterr().err
-    meta = json.loads((actor / "actor.json").read_text())
+    meta = _resumes_only_with(tmp_path / "a", args, before, now, monkeypatch, capsys)
     assert meta["training"]["iterations"] == 6 and recorded(meta)
 
 
