@@ -151,3 +151,22 @@ def test_sample_actor_frame():
     lm = midline_landmarks(skin.vertices, fr)
     assert fh.sum() > 100
     assert np.all(skin.vertices[fh, 1] > lm.nose_tip[1] + 40.0)
+
+
+def test_closed_lips_tell_up_from_down_where_the_nose_cannot(caplog):
+    """ICT's identity B (the committed test actor's template, y up in ICT's frame): its nose profile differs by
+    0.53 mm between the two sides, under the 1 mm that decides, and its chin and neck reach farther from the nose
+    tip than its forehead, so the mesh's extent would put the forehead at the chin. The closed lips on the midline,
+    34 mm from the tip, say which side is down. Without the triangles (no lips to read) the old fallback is
+    upside down, which is what the lips correct."""
+    from models.face_frame import _up_sign_from_nose
+
+    skin = trimesh.load(Path(__file__).resolve().parent / "data" / "ict_b_actor" / "template.ply", process=False)
+    with caplog.at_level("WARNING", logger="models.face_frame"):
+        fr = estimate_face_frame(skin.vertices, skin.faces)
+    assert angle_deg(fr.up, [0, 1, 0]) < 10.0 and angle_deg(fr.forward, [0, 0, 1]) < 10.0
+    assert "closed lips" in caplog.text
+    v = np.asarray(skin.vertices, dtype=np.float64)
+    up0 = np.cross(fr.forward, fr.symmetry_normal)
+    sign, evidence = _up_sign_from_nose(v, fr.symmetry_normal, fr.symmetry_offset, up0, fr.forward, 4.0)
+    assert abs(evidence) < 1.0 and sign * up0 @ [0, 1, 0] < 0
