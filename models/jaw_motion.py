@@ -95,7 +95,6 @@ class _Turn:
     t: np.ndarray
     share: np.ndarray
     reach: np.ndarray
-    fitted: np.ndarray      # (M,) bool, the points the turn was fitted to
 
 
 def _turn(rest: np.ndarray, moved: np.ndarray, pivot: np.ndarray, usable: np.ndarray, seed_fraction: float,
@@ -116,7 +115,7 @@ def _turn(rest: np.ndarray, moved: np.ndarray, pivot: np.ndarray, usable: np.nda
         if np.array_equal(new, keep):
             break
         keep = new
-    return _Turn(R, t, share, reach, keep) if keep.sum() >= 3 else None
+    return _Turn(R, t, share, reach) if keep.sum() >= 3 else None
 
 
 def find_jaw_opening(

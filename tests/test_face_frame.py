@@ -138,7 +138,6 @@ def test_jaw_pivot_at_the_condyles():
     assert abs(est[0]) < 1e-9 and est[2] < tip[2] - 80.0 and -40.0 < est[1] - tip[1] < 0.0
 
 
-@pytest.mark.skipif(not (SAMPLE / "shapes" / "neutral.ply").exists(), reason="sample actor not generated yet")
 def test_sample_actor_frame():
     skin = trimesh.load(SAMPLE / "shapes" / "neutral.ply", process=False)
     fr = estimate_face_frame(skin.vertices, skin.faces)

@@ -38,11 +38,11 @@ from models.bone_estimate import estimate_bone_surface
 from models.face_frame import FaceFrame, estimate_face_frame, estimate_jaw_pivot, forehead_region, midline_landmarks
 from models.input_chart import Tearing, opened, parted_vertices, tearing_shape
 from models.jaw_motion import find_jaw_opening
-from models.touching import touching_pairs
 from models.mirror import (ONE_SIDED_THRESHOLD, MirrorMap, mirror_displacements, mirror_points, mirrored_name,
                            one_sided, other_side)
 from models.precision import HIDDEN_MATMUL
 from models.rotation import rot6d_to_matrix
+from models.touching import touching_pairs
 from models.train import PRESETS, ActorTrainer, Evaluation, TrainingData, TrainSettings, model_config_for
 
 
