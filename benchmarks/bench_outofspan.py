@@ -62,6 +62,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repo's packages
 from benchmarks.heldout import (
     DEFAULT_ICT,
+    IDENTITIES,
     identity_coeffs,
     load_ict_identity,
     make_performance,
@@ -146,9 +147,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--actor", default=str(DEFAULT_ACTOR))
     ap.add_argument("--ict", default=str(DEFAULT_ICT))
-    ap.add_argument("--identity", default="sample", choices=("sample", "b"),
-                    help="the performer: the sample actor's ICT identity, or identity B (the sample's identity "
-                         "coefficients negated; fit it with an actor learned from B's shapes, --actor)")
+    ap.add_argument("--identity", default="sample", choices=IDENTITIES,
+                    help="the performer: the sample actor's ICT identity, identity B (the sample's identity "
+                         "coefficients negated) or C (with random signs); fit B or C with an actor learned from "
+                         "its shapes (--actor; benchmarks.heldout.write_identity_shapes)")
     ap.add_argument("--sequences", type=int, default=4)
     ap.add_argument("--frames", type=int, default=90)
     ap.add_argument("--seed", type=int, default=0, help="0: reporting; the default preset was tuned on 100")

@@ -24,11 +24,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repo's packages
 
 
 def _meshes(folder: Path) -> np.ndarray:
@@ -111,20 +114,10 @@ def main() -> None:
 
 def _ict_identity_b(work: Path) -> Path:
     """Shapes of a second ICT identity in the sample's topology (mm); returns the shapes folder."""
-    import trimesh
-
+    from benchmarks.heldout import write_identity_shapes
     from capture.actor.sample import sample_shapes_dir
 
-    z = np.load(Path(__file__).resolve().parents[2] / "shared" / "assets" / "ict_facekit" / "derived" /
-                "ict_facekit_light.npz", allow_pickle=False)
-    c1 = z["sample_identity_coeffs"][:100].astype(np.float64)
-    offset = 10.0 * np.tensordot(-2.0 * c1, z["identity_deltas"][:100].astype(np.float64), axes=1)  # id2 - id1, mm
-    out = work / "ict_b_shapes"
-    out.mkdir(parents=True, exist_ok=True)
-    for p in sorted(sample_shapes_dir().glob("*.ply")):
-        m = trimesh.load(p, process=False, maintain_order=True)
-        trimesh.Trimesh(np.asarray(m.vertices) + offset[:len(m.vertices)], m.faces, process=False).export(out / p.name)
-    return out
+    return write_identity_shapes("b", sample_shapes_dir(), work / "ict_b_shapes")
 
 
 def ict_identity_check(work: Path, demo: Path, run: Path, quick: bool) -> None:

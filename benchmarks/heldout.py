@@ -38,6 +38,7 @@ DEFAULT_ICT = ICT_LIGHT_NPZ    # benchmarks.assets: $CAPTURE_SHARED_ASSETS or ..
 JAW_RANGES = {"jawOpen": 0.45, "jawLeft": 0.3, "jawRight": 0.3}
 LOWER_TEETH = slice(19247, 21451)   # ICT's lower teeth (derived/jaw_rigid_from_lower_teeth.json): rigid in every shape
 EXCLUDED = ("mouthClose",)
+IDENTITIES = ("sample", "b", "c")
 
 
 @dataclass
@@ -93,13 +94,33 @@ def make_rigid_jaw(neutral: np.ndarray, delta: np.ndarray, teeth: np.ndarray, te
 
 def identity_coeffs(name: str, npz: Path = DEFAULT_ICT) -> np.ndarray:
     """The ICT identity coefficients of a named identity: ``sample`` (the bundled sample actor's,
-    ``sample_identity_coeffs``) or ``b`` (their negation: the second identity of the retargeting test,
-    ``benchmarks/bench_retarget.py`` and ``tests/data/ict_b_actor``)."""
-    if name not in ("sample", "b"):
-        raise ValueError(f"unknown identity {name!r}; expected 'sample' or 'b'")
+    ``sample_identity_coeffs``), ``b`` (their negation: the second identity of the retargeting test,
+    ``benchmarks/bench_retarget.py`` and ``tests/data/ict_b_actor``) or ``c`` (the sample's coefficients with
+    random signs, seed 2026: each mode as far from the mean face as the sample's, in a direction drawn once; a
+    third identity, held out from every setting chosen on the other two)."""
+    if name not in IDENTITIES:
+        raise ValueError(f"unknown identity {name!r}; expected one of {', '.join(IDENTITIES)}")
     with np.load(Path(npz), allow_pickle=False) as d:
         c = np.asarray(d["sample_identity_coeffs"], np.float64)[:N_IDENTITY]
+    if name == "c":
+        return c * np.random.default_rng(2026).choice([-1.0, 1.0], size=c.shape)
     return c if name == "sample" else -c
+
+
+def write_identity_shapes(name: str, shapes: Path, out: Path, npz: Path = DEFAULT_ICT) -> Path:
+    """The sample actor's training shapes (``shapes``: a folder of PLY in ICT's topology, mm) moved to identity
+    ``name`` (ICT is linear, so each shape moves by the difference of the identities), written to ``out``."""
+    import trimesh
+
+    with np.load(Path(npz), allow_pickle=False) as d:
+        deltas = d["identity_deltas"][:N_IDENTITY].astype(np.float64)
+    offset = CM_TO_MM * np.tensordot(identity_coeffs(name, npz) - identity_coeffs("sample", npz), deltas, axes=1)
+    out.mkdir(parents=True, exist_ok=True)
+    for p in sorted(Path(shapes).glob("*.ply")):
+        m = trimesh.load(p, process=False, maintain_order=True)
+        v = np.asarray(m.vertices)
+        trimesh.Trimesh(v + offset[:len(v)], m.faces, process=False).export(out / p.name)
+    return out
 
 
 def load_ict_identity(npz: Path = DEFAULT_ICT, identity_coeffs: np.ndarray | None = None) -> ICTIdentity:

@@ -125,6 +125,7 @@ def test_an_actor_without_a_jaw_says_so(tmp_path, capsys):
     assert main(["actor", "show", str(actor)]) == 0
     out = " ".join(capsys.readouterr().out.split())
     assert "no template vertex follows the jaw" in out and "give --jaw (and --skull)" in out
+    assert "with --no-jaw-from-motion: train it again without that flag" in out   # the reason is the flag, not the shapes
 
 
 def test_unfinished_training_before_the_jaw_from_motion_says_how_to_resume(tmp_path, monkeypatch, capsys):

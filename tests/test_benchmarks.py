@@ -145,6 +145,36 @@ def test_identity_b_is_the_sample_mirrored_in_identity_space():
 
 
 @needs_ict
+def test_identity_c_is_a_third_face_and_its_shapes_are_the_samples_moved(tmp_path):
+    """Identity C keeps each identity mode's distance from the mean face (the sample's magnitudes) with signs drawn
+    once, so it is neither the sample nor B; its training shapes are the sample's moved by the identity difference,
+    so the written neutral is C's ICT neutral (to the PLY's float32 precision, 1e-3 mm at 150 mm)."""
+    import trimesh
+
+    from benchmarks.heldout import identity_coeffs, load_ict_identity, write_identity_shapes
+    from capture.actor.sample import sample_shapes_dir
+
+    s, c = identity_coeffs("sample"), identity_coeffs("c")
+    np.testing.assert_array_equal(np.abs(c), np.abs(s))
+    np.testing.assert_array_equal(c, identity_coeffs("c"))                    # drawn once: the same every call
+    assert 30 < int((np.sign(c) != np.sign(s)).sum()) < 70                      # about half the signs turned
+    shapes = tmp_path / "c"
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("neutral.ply", "jawOpen.ply"):
+        (src / name).write_bytes((sample_shapes_dir() / name).read_bytes())
+    write_identity_shapes("c", src, shapes)
+    assert sorted(p.name for p in shapes.glob("*.ply")) == ["jawOpen.ply", "neutral.ply"]
+    ident, sample = load_ict_identity(identity_coeffs=c), load_ict_identity()
+    got = {n: np.asarray(trimesh.load(shapes / n, process=False, maintain_order=True).vertices)[:len(ident.neutral)]
+           for n in ("neutral.ply", "jawOpen.ply")}
+    np.testing.assert_allclose(got["neutral.ply"], ident.neutral, atol=1e-3)
+    np.testing.assert_allclose(got["jawOpen.ply"], ident.neutral + ident.deltas["jawOpen"], atol=1e-3)
+    assert np.abs(ident.neutral - sample.neutral).max() > 1.0
+    assert np.abs(ident.neutral - load_ict_identity(identity_coeffs=identity_coeffs("b")).neutral).max() > 1.0
+
+
+@needs_ict
 def test_bench_fit3d_quick(tmp_path):
     from benchmarks.bench_fit3d import main
 

@@ -166,6 +166,20 @@ def _show(actor, console: Console) -> None:
                            f"package") from None
 
 
+def _why_no_jaw(source: dict) -> str:
+    """What ``capture actor show`` adds when an actor trained without a jaw mesh has no jaw: why, from its
+    ``source.jaw_source`` record, and what to do."""
+    why = (source.get("jaw_source") or {}).get("why")
+    if why == "--no-jaw-from-motion":
+        return ("; it was trained without a jaw mesh and with --no-jaw-from-motion: train it again without that flag "
+                "to read the jaw from the shapes' motion, or give --jaw (and --skull) for an anatomical one")
+    if why is None:
+        return ("; it was trained without a jaw mesh before the jaw was read from the shapes' motion: train it again "
+                "to read one, or give --jaw (and --skull) for an anatomical one")
+    return ("; it was trained without a jaw mesh, and no shape opened a jaw that it could read, so give --jaw (and "
+            "--skull) for an anatomical one")
+
+
 def _show_metadata(actor, meta: dict, console: Console) -> None:
     from capture.actor.package import resolve_actor
 
@@ -206,8 +220,7 @@ def _show_metadata(actor, meta: dict, console: Console) -> None:
         else:
             console.print("[yellow]warning:[/] no template vertex follows the jaw (skinning weight > 0.5 nowhere): this "
                           "actor opens its mouth by displacements, as a blendshape rig does, and does not turn a jaw"
-                          + ("; it was trained without a jaw mesh, and no shape opened a jaw that it could read, so "
-                             "give --jaw (and --skull) for an anatomical one" if not meta["source"].get("jaw") else ""),
+                          + (_why_no_jaw(meta["source"]) if not meta["source"].get("jaw") else ""),
                           highlight=False)
     s = tr["settings"]
     console.print(f"training: preset {tr['preset']}, {tr['iterations']} iterations, width {s['width']}, depth {s['depth']}, "
