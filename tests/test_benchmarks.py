@@ -197,6 +197,18 @@ def test_bench_takes_quick(tmp_path):
     # the fit converged on its in-span take: landmarks reprojected within 3x their 0.5 px noise (0.82 px
     # measured; a fit that failed is off by many px)
     assert res["takes"][0]["noise_px"] == 0.5 and res["takes"][0]["default"]["rms_px"] < 1.5
+    # side by side on the same frames: the default's errors on the paper's frames are its own first frames, and
+    # the paper preset's solve time is scaled to its full 1e4 iterations from the ones measured
+    from models.fit_settings import FIT_PRESETS
+
+    r = res["takes"][0]
+    d, p, same = r["default"], r["paper"], r["default_same_frames"]
+    assert same["per_frame_mm"] == d["per_frame_mm"][:p["frames"]] and len(p["per_frame_mm"]) == p["frames"]
+    assert same["mean_mm"] == pytest.approx(float(np.mean(same["per_frame_mm"])), rel=1e-6)
+    assert p["iterations_measured"] * p["solve_extrapolated_x"] == FIT_PRESETS["paper"].iterations
+    # 10 of the paper's 1e4 Adam steps leave it far from the landmarks (2.2 px measured) where the default's
+    # closed-form solve is within 3x the noise: the ratio the benchmark prints must be below 1
+    assert p["rms_px"] > d["rms_px"] and r["error_ratio_default_over_paper"] < 1
     assert (tmp_path / "takes_time_per_stage.png").is_file()
 
 
@@ -384,7 +396,8 @@ def test_bench_depth_rules_no_change_and_rules_are_measured_on_the_same_vertices
 def test_bench_noise_adaptive_quick(tmp_path):
     """One small take at 1.5 px: the default reads that noise from its residuals (within 15 %: 300 landmarks,
     40 frames) and scales its prior up (a smaller face than the tuning's: less than the noise rule alone);
-    the fixed prior reads nothing; both fit the same landmarks."""
+    the fixed prior reads nothing; both fit the same landmarks, and the scaled-up prior jitters less (0.034
+    against 0.053 mm above the truth's, measured)."""
     from benchmarks.bench_noise_adaptive import main
 
     res = main(["--quick", "--noise", "1.5:iid", "--out", str(tmp_path / "na.json")])
@@ -392,7 +405,8 @@ def test_bench_noise_adaptive_quick(tmp_path):
     a, f = row["methods"]["adaptive (default)"], row["methods"]["fixed prior"]
     assert a["landmark_noise_px"] == pytest.approx(1.5, rel=0.15) and "landmark_noise_px" not in f
     assert 1 < a["temporal_prior_scale_min"] <= a["temporal_prior_scale_max"] < 1.5 / 0.53 * 800 / 200
-    assert np.isfinite(a["mean_mm"]) and np.isfinite(f["mean_mm"]) and a["mean_mm"] != f["mean_mm"]
+    assert np.isfinite(a["mean_mm"]) and np.isfinite(f["mean_mm"])
+    assert a["jitter_excess_mm"] < f["jitter_excess_mm"]
     assert (tmp_path / "na.json").is_file()
 
 
@@ -405,8 +419,15 @@ def test_bench_outofspan_limits_quick():
     assert len(rows) == 4 and all(np.isfinite(r["mean_mm"]) and r["mean_mm"] > 0 for r in rows.values())
     for r in rows.values():
         assert r["landmarks"] > 0 and r["priors"] >= 0 and r["total"] == pytest.approx(r["landmarks"] + r["priors"])
+    fit2d, oracle = rows["2D fit (--preset field, one window)"], rows["3D oracle (true landmark points, light priors)"]
+    # the benchmark's finding at the quick size too: the 2D fit is a lower minimum of the 2D energy than the
+    # 3D-supervised solution (0.56 against 1.31 measured), yet further from the truth in depth (1.45 against 0.86 mm)
+    assert fit2d["total"] < oracle["total"] and oracle["depth_mm"] < fit2d["depth_mm"]
+    assert rows["rank 2 from the oracle"]["total"] < oracle["total"]     # the rank solve minimises the 2D energy
     shares = res["held_out_mouth_motion_shares"]
     assert all(0 < v < 1 for v in shares.values())
+    # no regression on the 19 training deltas predicts the held-out forward motion better than none at all
+    assert min(shares["forward_after_regression"], shares["forward_after_ridge"]) > shares["forward"]
 
 
 def test_bench_actor_quick(tmp_path):
