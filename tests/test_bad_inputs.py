@@ -840,15 +840,23 @@ def test_a_second_run_on_the_same_out_fails_at_once(env, tmp_path, capsys):
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
 def test_a_forked_child_does_not_keep_a_killed_runs_lock(tmp_path):
     """A run killed with -9 while its forked fit or figure process winds down: the next run gets the folder at
-    once. (The child shared the lock's open file description; flock held until it exited too.)"""
+    once. (The child shared the lock's open file description; flock held until it exited too.) The parent is
+    killed once the child runs its target, so after the fork's hooks: on a loaded machine the kill could
+    otherwise land between the fork and the child's first instructions, a window no user can hit."""
     from capture.io.outdir import OutLock
 
     script = (
         "import multiprocessing as mp, sys, time\n"
         "from capture.io.outdir import OutLock\n"
+        "def nap(started):\n"
+        "    started.set()\n"
+        "    time.sleep(60)\n"
         "OutLock(sys.argv[1]).acquire()\n"
-        "child = mp.get_context('fork').Process(target=time.sleep, args=(60,), daemon=True)\n"
+        "ctx = mp.get_context('fork')\n"
+        "started = ctx.Event()\n"
+        "child = ctx.Process(target=nap, args=(started,), daemon=True)\n"
         "child.start()\n"
+        "started.wait(30)\n"
         "print(child.pid, flush=True)\n"
         "time.sleep(60)\n"
     )
