@@ -206,9 +206,9 @@ def test_bench_takes_quick(tmp_path):
     assert same["per_frame_mm"] == d["per_frame_mm"][:p["frames"]] and len(p["per_frame_mm"]) == p["frames"]
     assert same["mean_mm"] == pytest.approx(float(np.mean(same["per_frame_mm"])), rel=1e-6)
     assert p["iterations_measured"] * p["solve_extrapolated_x"] == FIT_PRESETS["paper"].iterations
-    # 10 of the paper's 1e4 Adam steps leave it far from the landmarks (2.2 px measured) where the default's
-    # closed-form solve is within 3x the noise: the ratio the benchmark prints must be below 1
-    assert p["rms_px"] > d["rms_px"] and r["error_ratio_default_over_paper"] < 1
+    # on those frames, 10 of the paper's 1e4 Adam steps leave it far from the landmarks (2.2 px measured) where
+    # the default's closed-form solve is within 3x the noise (0.76 px): the ratio the benchmark prints is below 1
+    assert p["rms_px"] > same["rms_px"] and r["error_ratio_default_over_paper"] < 1
     assert (tmp_path / "takes_time_per_stage.png").is_file()
 
 
