@@ -25,7 +25,11 @@ It warns (and ``--strict`` fails) when the model extrapolates or is not determin
   there by more than the tolerance (or the check could not be run at all);
 - another lens model (not the rational one) predicts the left-out views within 5 % as well but
   differs from the chosen one by more than ``tolerance_px`` somewhere: the views cannot decide
-  between them (see :func:`calib.calibrate.choose_model`).
+  between them (see :func:`calib.calibrate.choose_model`);
+- given the board's corners (``board_points``), the detector found fewer than ``min_detected_fraction``
+  (70 %) of the corners that the used views had in view (:func:`missed_corners`): blurred, small or glared
+  markers. Then the warning on a bare image corner also says when the board came nearer to it than any used
+  corner but was not detected there: recording the board there again helps only if the footage is sharper.
 """
 
 from __future__ import annotations
@@ -38,6 +42,67 @@ from calib.uncertainty import (CORNER_NAMES, Coverage, Covariance, coverage, int
                                pixel_uncertainty, projection_difference, term_effects_px)
 
 CORNER_GAP_FRACTION = 0.08
+MIN_DETECTED_FRACTION = 0.7
+
+
+@dataclass(frozen=True)
+class MissedCorners:
+    """Board corners the used views had in view, and which of them the detector found (:func:`missed_corners`).
+
+    ``in_view`` and ``detected`` are per used view (input order); ``missed_px`` ``(m, 2)`` are the pixels where
+    the camera puts the corners in view that were not detected, ``missed_view`` ``(m,)`` their view's index."""
+
+    in_view: np.ndarray
+    detected: np.ndarray
+    missed_px: np.ndarray
+    missed_view: np.ndarray
+
+    @property
+    def fraction(self) -> float:
+        """Detected corners over corners in view, all views pooled (1 when none was in view)."""
+        total = int(self.in_view.sum())
+        return float(self.detected.sum()) / total if total else 1.0
+
+
+def missed_corners(camera, board_points: np.ndarray, object_points: list[np.ndarray], rvecs: list[np.ndarray],
+                   tvecs: list[np.ndarray], square_mm: float) -> MissedCorners:
+    """Which corners of the board each view had in view, and which of them were detected.
+
+    Args:
+        camera: the calibrated :class:`~calib.camera.Camera`.
+        board_points: ``(N, 3)`` all the board's corners (mm, z = 0; :meth:`BoardSpec.corner_object_points`).
+        object_points: per view, ``(n, 3)`` the detected corners' board points (a subset of ``board_points``).
+        rvecs, tvecs: per view, the board's pose from the calibration (OpenCV's ``rvec``, ``tvec``).
+        square_mm: the board's square side.
+
+    A corner counts as in view when it and the four points one square away along the board's axes project inside
+    the image: a ChArUco corner is found from its neighbouring markers, so one whose neighbourhood is cut by the
+    image border cannot be. Points that only a distortion model's fold-over brings into the image (their pinhole
+    projection more than half the image outside it) are not in view. Pure geometry, no image.
+    """
+    import cv2
+
+    w, h = camera.image_size
+    board = np.asarray(board_points, np.float64).reshape(-1, 3)
+    offsets = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]], np.float64) * float(square_mm)
+    probe = (board[:, None, :] + offsets[None]).reshape(-1, 3)
+    in_view, detected, missed, missed_view = [], [], [], []
+    for k, (obj, r, t) in enumerate(zip(object_points, rvecs, tvecs)):
+        rvec, tvec = np.asarray(r, np.float64), np.asarray(t, np.float64)
+        uv = cv2.projectPoints(probe, rvec, tvec, camera.K, camera.dist)[0].reshape(len(board), len(offsets), 2)
+        pin = cv2.projectPoints(probe, rvec, tvec, camera.K, None)[0].reshape(len(board), len(offsets), 2)
+        inside = ((uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
+                  & (np.abs(pin[..., 0] / w - 0.5) <= 1.0) & (np.abs(pin[..., 1] / h - 0.5) <= 1.0)).all(1)
+        found = {tuple(p) for p in np.round(np.asarray(obj, np.float64).reshape(-1, 3), 3)}
+        is_found = np.array([tuple(p) in found for p in np.round(board, 3)])
+        in_view.append(int(inside.sum()))
+        detected.append(int((inside & is_found).sum()))
+        miss = inside & ~is_found
+        missed.append(uv[miss, 0])
+        missed_view.append(np.full(int(miss.sum()), k))
+    return MissedCorners(np.array(in_view), np.array(detected),
+                         np.concatenate(missed) if missed else np.zeros((0, 2)),
+                         np.concatenate(missed_view) if missed_view else np.zeros(0, int))
 
 
 @dataclass(frozen=True)
@@ -54,6 +119,7 @@ class Diagnostics:
     image_size: tuple[int, int] = (0, 0)
     uncertainty_fixed_frame_max_px: float = 0.0  # the same two without the implied rotation, for reference
     spread_fixed_frame_max_px: float = 0.0
+    missed: MissedCorners | None = None  # with the board's corners: what the detector found of what was in view
 
     def _at(self, values: np.ndarray) -> list[float]:
         return [float(v) for v in self.grid[int(np.argmax(values))]]
@@ -80,8 +146,10 @@ class Diagnostics:
 
 
 def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | None = None,
-             corner_gap_fraction: float = CORNER_GAP_FRACTION) -> Diagnostics:
-    """Uncertainty, spread, coverage and warnings of one calibration (module docstring)."""
+             corner_gap_fraction: float = CORNER_GAP_FRACTION, board_points: np.ndarray | None = None,
+             square_mm: float = 0.0, min_detected_fraction: float = MIN_DETECTED_FRACTION) -> Diagnostics:
+    """Uncertainty, spread, coverage and warnings of one calibration (module docstring); ``board_points``
+    ``(N, 3)`` and ``square_mm`` (the board) add what the detector missed (:func:`missed_corners`)."""
     camera = result.camera
     w, h = camera.image_size
     step = grid_step_px or max(4.0, float(np.hypot(w, h)) / 100.0)
@@ -99,13 +167,26 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
     effects = term_effects_px(camera, result.model, cov, fpp, far)
 
     warnings = []
+    missed = (missed_corners(camera, board_points, result.object_points, result.rvecs, result.tvecs, square_mm)
+              if board_points is not None and square_mm > 0 else None)
     gap_limit = corner_gap_fraction * float(np.hypot(w, h))
     gaps = {n: g for n, g in cov_map.corner_gaps_px.items() if g > gap_limit}
     if gaps:
+        poor = missed is not None and missed.fraction < min_detected_fraction
+        seen = _seen_nearer(missed, gaps, (w, h)) if poor else 0
         warnings.append(
             "image corner" + ("s " if len(gaps) > 1 else " ") + ", ".join(gaps) + " not covered (nearest board "
             "corner " + ", ".join(f"{g:.0f}" for g in gaps.values()) + f" px away, limit {gap_limit:.0f} px): the "
-            "lens model is extrapolated there; record the board in the image corners"
+            "lens model is extrapolated there; "
+            + (f"the board came nearer to them in {seen} view(s), but its corners there were not detected: record "
+               "it there sharper, larger or without glare" if seen else "record the board in the image corners")
+        )
+    if missed is not None and missed.fraction < min_detected_fraction:
+        low = int(np.sum(missed.detected < min_detected_fraction * missed.in_view))
+        warnings.append(
+            f"the detector found only {missed.fraction:.0%} of the board corners in view ({low} of "
+            f"{len(missed.in_view)} views under {min_detected_fraction:.0%}): blurred, small or glared markers "
+            "leave the views' edges out; sharper footage, a larger board or more light would cover more of the image"
         )
     if sigma.max() > tolerance_px / 2:
         at = grid[int(np.argmax(sigma))]
@@ -137,7 +218,19 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
             f"({at[0]:.0f}, {at[1]:.0f}), above the {tolerance_px:g} px tolerance; record more views"
         )
     return Diagnostics(grid, shape, sigma, spread, cov, cov_map, effects, tolerance_px, warnings, (w, h),
-                       float(sigma_fixed.max()), spread_fixed)
+                       float(sigma_fixed.max()), spread_fixed, missed)
+
+
+def _seen_nearer(missed: MissedCorners, gaps: dict[str, float], image_size: tuple[int, int]) -> int:
+    """Views with an undetected board corner in view nearer to one of the bare image corners in ``gaps``
+    (name -> distance to the nearest used corner, px) than every used corner."""
+    from calib.uncertainty import image_corners
+
+    where = dict(zip(CORNER_NAMES, image_corners(image_size)))
+    near = np.zeros(len(missed.missed_px), bool)
+    for name, gap in gaps.items():
+        near |= np.linalg.norm(missed.missed_px - np.asarray(where[name], np.float64), axis=1) < gap
+    return len(set(missed.missed_view[near].tolist()))
 
 
 def _rival_model(result, tolerance_px: float, holdout_tolerance: float = 0.05) -> tuple[str, float] | None:
@@ -161,4 +254,4 @@ def _rival_model(result, tolerance_px: float, holdout_tolerance: float = 0.05) -
     return name, rivals[name]
 
 
-__all__ = ["CORNER_NAMES", "Diagnostics", "diagnose"]
+__all__ = ["CORNER_NAMES", "Diagnostics", "MissedCorners", "diagnose", "missed_corners"]

@@ -209,7 +209,8 @@ def run_calibrate(settings: CalibrateSettings) -> CalibrateOutputs:
     provenance += f", {len(used)} views, model {result.model.name}, RMS {result.rms_px:.3f} px"
     camera = result.camera.with_provenance(provenance)
     t_diag = time.perf_counter()
-    diag = diagnose(result, options, settings.tolerance_px)
+    diag = diagnose(result, options, settings.tolerance_px, board_points=board.corner_object_points(),
+                    square_mm=board.square_mm)
     t_write = time.perf_counter()
 
     report_path, plot_path = report_paths(settings.out)
@@ -273,6 +274,7 @@ def _report(settings, board, footage, examined, used, dropped, result, camera, c
 
     errors = {v.label: v for v in result.views}
     holdout = {v: e for v, e in zip([v.label for v in result.views], result.holdout.view_rms_px)}
+    in_view = {v.label: int(n) for v, n in zip(result.views, diag.missed.in_view)}
     return {
         "format": "capture-calibration-report",
         "version": REPORT_VERSION,
@@ -308,6 +310,12 @@ def _report(settings, board, footage, examined, used, dropped, result, camera, c
         "coverage": coverage,
         "coverage_note": "fraction of a 16-column grid over the image holding at least one used corner",
         "coverage_gaps_px": diag.coverage.corner_gaps_px,
+        "corners_in_view": int(diag.missed.in_view.sum()),
+        "corners_detected": int(diag.missed.detected.sum()),
+        "corners_detected_fraction": diag.missed.fraction,
+        "corners_note": "board corners that the used views had in view (the corner and its neighbouring squares "
+                        "inside the image, by the calibrated camera and each view's pose), and how many of them "
+                        "the detector found",
         "uncovered_fraction": diag.coverage.uncovered_fraction,
         "warnings": diag.warnings,
         "std_dev": result.std_dev,
@@ -317,6 +325,7 @@ def _report(settings, board, footage, examined, used, dropped, result, camera, c
         "views": [
             {"label": c.label, "frame": c.frame, "corners": errors[c.label].corners,
              "rms_px": errors[c.label].rms_px, "holdout_rms_px": holdout.get(c.label),
+             "corners_in_view": in_view.get(c.label),
              "edge_width_px": round(c.edge_width_px, 2), "square_px": round(c.square_px, 1),
              "tilt_deg": [round(t, 1) for t in c.tilt_deg]}
             for c in used
