@@ -169,10 +169,10 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
     warnings = []
     missed = (missed_corners(camera, board_points, result.object_points, result.rvecs, result.tvecs, square_mm)
               if board_points is not None and square_mm > 0 else None)
+    poor = missed is not None and missed.fraction < min_detected_fraction
     gap_limit = corner_gap_fraction * float(np.hypot(w, h))
     gaps = {n: g for n, g in cov_map.corner_gaps_px.items() if g > gap_limit}
     if gaps:
-        poor = missed is not None and missed.fraction < min_detected_fraction
         seen = _seen_nearer(missed, gaps, (w, h)) if poor else 0
         warnings.append(
             "image corner" + ("s " if len(gaps) > 1 else " ") + ", ".join(gaps) + " not covered (nearest board "
@@ -181,7 +181,7 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
             + (f"the board came nearer to them in {seen} view(s), but its corners there were not detected: record "
                "it there sharper, larger or without glare" if seen else "record the board in the image corners")
         )
-    if missed is not None and missed.fraction < min_detected_fraction:
+    if poor:
         low = int(np.sum(missed.detected < min_detected_fraction * missed.in_view))
         warnings.append(
             f"the detector found only {missed.fraction:.0%} of the board corners in view ({low} of "
