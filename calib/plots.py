@@ -72,7 +72,8 @@ def save_coverage_plot(path: str | os.PathLike, diag, view_points: list[np.ndarr
     left, used corners per cell as a heat map (white: no corner); middle, the predicted 1-sigma pixel
     uncertainty; right, the hold-out spread (both up to the camera's rotation, :mod:`calib.uncertainty`).
     The middle and right panels share a colour scale in px, with the ``tolerance_px`` contour drawn; black
-    dots are the used corners."""
+    dots are the used corners. With ``diag.missed`` (:func:`calib.diagnostics.missed_corners`) the left panel
+    also marks in red the board corners that were in view but not detected, and says which share was found."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -88,9 +89,15 @@ def save_coverage_plot(path: str | os.PathLike, diag, view_points: list[np.ndarr
                         vmax=max(2.0, float(counts.max())), interpolation="nearest")
     fig.colorbar(im, ax=axes[0], shrink=0.8, label="used corners per cell")
     gaps = ", ".join(f"{v:.0f}" for v in diag.coverage.corner_gaps_px.values())
+    found = ""
+    if diag.missed is not None:
+        found = (f"\nboard corners in view detected: {diag.missed.fraction:.0%} "
+                 f"({len(diag.missed.missed_px)} missed, red x)")
+        axes[0].scatter(diag.missed.missed_px[:, 0], diag.missed.missed_px[:, 1], s=14, c="#ff0000", marker="x",
+                        linewidths=1.0, zorder=3)
     axes[0].set_title(f"coverage: {1 - diag.coverage.uncovered_fraction:.0%} of the image within "
-                      f"{diag.coverage.reach_px:.0f} px of a corner\nimage-corner gaps TL, TR, BL, BR: {gaps} px",
-                      fontsize=9)
+                      f"{diag.coverage.reach_px:.0f} px of a corner\nimage-corner gaps TL, TR, BL, BR: {gaps} px"
+                      + found, fontsize=9)
     vmax = max(diag.tolerance_px, float(diag.uncertainty_px.max()), float(diag.spread_px.max()))
     for ax, values, name in ((axes[1], diag.uncertainty_px, "predicted uncertainty (1 sigma, up to rotation)"),
                              (axes[2], diag.spread_px, "hold-out spread (max over folds, up to rotation)")):

@@ -404,6 +404,12 @@ def test_blurred_board_corners_the_detector_missed_are_reported_and_warned(tmp_p
     assert any(w.startswith("the detector found only") for w in blur["warnings"])
     assert any("not covered" in w and "not detected" in w for w in blur["warnings"])
     assert any("not covered" in w and w.endswith("record the board in the image corners") for w in clean["warnings"])
+    # the coverage map marks the missed corners in pure red, a colour its heat map (inferno) never takes
+    red = {}
+    for name in looks:
+        png = cv2.imread(str(tmp_path / f"{name}.coverage.png"))
+        red[name] = int(np.sum((png[..., 2] > 220) & (png[..., 1] < 40) & (png[..., 0] < 40)))
+    assert red["blur"] > 5 * max(red["clean"], 1)
 
 
 # ------------------------------------------------------------------------------- warnings, --strict
