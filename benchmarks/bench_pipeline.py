@@ -268,7 +268,8 @@ print(json.dumps({"frames": len(tr), "detect_s": time.perf_counter() - t0}))
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=1200,
-                    help="take length; the run's fixed ~1.7 s weighs more on short takes (default 1200: 40 s)")
+                    help="take length (default 1200: 40 s); a run's fixed start and end costs weigh more on short "
+                         "takes (BENCHMARKS.md)")
     ap.add_argument("--size", default="1280x720")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--lag", type=int, default=5, help="capture live --lag")

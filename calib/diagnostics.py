@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.uncertainty import (CORNER_NAMES, Coverage, Covariance, coverage, intrinsic_covariance, pixel_grid,
-                               pixel_uncertainty, projection_difference, term_effects_px)
+from calib.uncertainty import (CORNER_NAMES, Coverage, Covariance, coverage, image_corners, intrinsic_covariance,
+                               pixel_grid, pixel_uncertainty, projection_difference, term_effects_px)
 
 CORNER_GAP_FRACTION = 0.08
 MIN_DETECTED_FRACTION = 0.7
@@ -224,8 +224,6 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
 def _seen_nearer(missed: MissedCorners, gaps: dict[str, float], image_size: tuple[int, int]) -> int:
     """Views with an undetected board corner in view nearer to one of the bare image corners in ``gaps``
     (name -> distance to the nearest used corner, px) than every used corner."""
-    from calib.uncertainty import image_corners
-
     where = dict(zip(CORNER_NAMES, image_corners(image_size)))
     near = np.zeros(len(missed.missed_px), bool)
     for name, gap in gaps.items():
