@@ -13,7 +13,10 @@ Pure computation on corner lists (no files, no video). :func:`calibrate_views`:
    the evidence clearly supports another (:func:`choose_model`): a richer model must predict the
    left-out views better; a simpler one is taken only when the default's extra terms are not
    determined at all (its predicted uncertainty over the image several times the simpler model's)
-   and the simpler model agrees with the default wherever the default is determined.
+   and the simpler model agrees with the default wherever the default is determined. A model that is
+   not a real lens over the image (it folds over, or puts the principal point outside it:
+   :func:`calib.camera_io.camera_problem`, the check every camera file passes) is never chosen, and
+   when no candidate is one the calibration is refused.
 3. **Final solve** with the chosen model on all kept views, with the full intrinsic covariance
    (:mod:`calib.uncertainty`) and the hold-out cameras of that model for the report.
 
@@ -27,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib.camera import Camera
+from calib.camera_io import camera_problem
 from calib.holdout import HoldoutResult, holdout_check
 from calib.models import OPENCV_DEFAULT, DistortionModel, candidate_models
 from calib.solve import Solve, solve
@@ -89,6 +93,7 @@ class CalibrationResult:
     model_scores: dict[str, float] = field(default_factory=dict)  # hold-out RMS (px) per candidate model
     model_evidence: dict[str, ModelEvidence] = field(default_factory=dict)  # per candidate model
     holdout: HoldoutResult | None = None  # the chosen model's hold-out check
+    implausible: dict[str, str] = field(default_factory=dict)  # candidate models not used: what is wrong with each
     rvecs: list[np.ndarray] = field(repr=False, default_factory=list)
     tvecs: list[np.ndarray] = field(repr=False, default_factory=list)
     rounds: int = 1
@@ -150,6 +155,22 @@ def calibrate_views(
         full = Camera(solves[m.name].K, solves[m.name].dist, image_size)
         checks[m.name] = holdout_check(obj_a, img_a, image_size, m, options, full)
     candidates = [m for m in candidates if m.name in checks]
+    # a model that folds over inside the image (or puts its principal point outside it, ...) is not a lens:
+    # `capture run` refuses such a camera file, so it is never chosen (plain OpenCV would return it)
+    implausible = {}
+    for m in candidates:
+        problem = camera_problem(Camera(solves[m.name].K, solves[m.name].dist, image_size))
+        if problem:
+            implausible[m.name] = problem[0]
+    if implausible and len(implausible) == len(candidates):
+        name, problem = next(iter(implausible.items()))
+        raise CaptureError(
+            f"no lens model fitted to these {len(active)} views is a real lens ({name}: {problem}); record more views "
+            "over the whole image" if options.model == "auto" else
+            f"the {name} lens model fitted to these {len(active)} views is not a real lens ({problem}); record more "
+            "views over the whole image, or choose a model with fewer terms (--model k1-k2)"
+        )
+    candidates = [m for m in candidates if m.name not in implausible]
     evidence = model_evidence(candidates, solves, obj_a, img_a, image_size, first, options) \
         if len(candidates) > 1 else {}
     model = choose_model(candidates, checks, first, options, evidence)
@@ -165,7 +186,7 @@ def calibrate_views(
                     {k: std[k] for k in ("fx", "fy", "cx", "cy") if k in std})
     views = [ViewError(labels[i], float(s.per_view[k]), len(img[i])) for k, i in enumerate(active)]
     return CalibrationResult(camera, s.rms, views, rejected, std, model, scores, evidence, checks[model.name],
-                             s.rvecs, s.tvecs, rounds, obj_a, img_a)
+                             implausible, s.rvecs, s.tvecs, rounds, obj_a, img_a)
 
 
 def base_model(candidates: list[DistortionModel]) -> DistortionModel:

@@ -211,47 +211,56 @@ MAX_DISTORTION_ROUNDTRIP_PX = 1.0
 MAX_DISTORTION_SCALE = 4.0
 
 
-def check_camera_plausible(camera: Camera, source: str) -> Camera:
-    """One line when a camera parses but cannot be right: the principal point outside the image, a field of
-    view outside :data:`FOV_RANGE_DEG`, a wild aspect, or distortion that does not invert over the image."""
+def camera_problem(camera: Camera) -> tuple[str, str] | None:
+    """``(problem, advice)`` when a camera cannot be right, else None: the principal point outside the image, a
+    field of view outside :data:`FOV_RANGE_DEG`, a wild aspect, or distortion that does not invert over the image
+    (round trip > :data:`MAX_DISTORTION_ROUNDTRIP_PX`) or stretches the view more than :data:`MAX_DISTORTION_SCALE`.
+    ``advice`` is for a camera file someone wrote; a calibration that produces such a model gives its own."""
     import cv2
 
     w, h = camera.image_size
     if not (-0.5 <= camera.cx <= w - 0.5 and -0.5 <= camera.cy <= h - 0.5):
-        raise CaptureError(f"{source}: principal point ({camera.cx:g}, {camera.cy:g}) lies outside the {w}x{h} image; "
-                           f"check K (cx, cy are pixels, near the image centre) or recalibrate")
+        return (f"principal point ({camera.cx:g}, {camera.cy:g}) lies outside the {w}x{h} image",
+                "check K (cx, cy are pixels, near the image centre) or recalibrate")
     fov = camera.fov_deg()
     lo, hi = FOV_RANGE_DEG
     if not all(lo <= f <= hi for f in fov):
-        raise CaptureError(f"{source}: fx={camera.fx:g}, fy={camera.fy:g} give a {fov[0]:.3g} x {fov[1]:.3g} degree field "
-                           f"of view for {w}x{h} images (plausible: {lo:g}-{hi:g}); focal lengths are in pixels: "
-                           f"check K or recalibrate")
+        return (f"fx={camera.fx:g}, fy={camera.fy:g} give a {fov[0]:.3g} x {fov[1]:.3g} degree field of view for "
+                f"{w}x{h} images (plausible: {lo:g}-{hi:g})", "focal lengths are in pixels: check K or recalibrate")
     if not 1.0 / MAX_ASPECT <= camera.fy / camera.fx <= MAX_ASPECT:
-        raise CaptureError(f"{source}: fy / fx = {camera.fy / camera.fx:.3g} is not a real lens's pixel aspect; check K")
-    if camera.dist.size and np.any(camera.dist != 0):
-        u, v = np.meshgrid(np.linspace(0, w - 1, 9), np.linspace(0, h - 1, 9))
-        px = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
-        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-9)
-        und = cv2.undistortPointsIter(px, camera.K, camera.dist, None, None, crit).reshape(-1, 2)
-        back = None
-        if np.isfinite(und).all():
-            pts = np.concatenate([und, np.ones((len(und), 1))], 1)
-            back = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), camera.K, camera.dist)[0].reshape(-1, 2)
-        err = np.inf if back is None or not np.isfinite(back).all() else float(np.abs(back - px.reshape(-1, 2)).max())
-        if back is not None and err <= MAX_DISTORTION_ROUNDTRIP_PX:
-            pin = (px.reshape(-1, 2) - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
-            rd, ru = np.linalg.norm(pin, axis=1), np.linalg.norm(und, axis=1)
-            far = rd > 0.25 * rd.max()
-            worst = ru[far] / rd[far]
-            if far.any() and not (1.0 / MAX_DISTORTION_SCALE <= worst.min() and worst.max() <= MAX_DISTORTION_SCALE):
-                bad = worst.min() if worst.min() < 1.0 / MAX_DISTORTION_SCALE else worst.max()
-                raise CaptureError(f"{source}: the distortion coefficients {np.round(camera.dist[:5], 4).tolist()} scale "
-                                   f"the view by {bad:.3g} at the image's edge (a lens does at most {MAX_DISTORTION_SCALE:g}x); "
-                                   f"check the coefficients' order (k1, k2, p1, p2, k3) or recalibrate")
-        if not err <= MAX_DISTORTION_ROUNDTRIP_PX:
-            raise CaptureError(f"{source}: the distortion coefficients {np.round(camera.dist[:5], 4).tolist()} do not "
-                               f"invert over the {w}x{h} image (points move {err:.3g} px on a round trip); check the "
-                               f"coefficients' order (k1, k2, p1, p2, k3) or recalibrate")
+        return f"fy / fx = {camera.fy / camera.fx:.3g} is not a real lens's pixel aspect", "check K"
+    if not (camera.dist.size and np.any(camera.dist != 0)):
+        return None
+    order = "check the coefficients' order (k1, k2, p1, p2, k3) or recalibrate"
+    u, v = np.meshgrid(np.linspace(0, w - 1, 9), np.linspace(0, h - 1, 9))
+    px = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-9)
+    und = cv2.undistortPointsIter(px, camera.K, camera.dist, None, None, crit).reshape(-1, 2)
+    back = None
+    if np.isfinite(und).all():
+        pts = np.concatenate([und, np.ones((len(und), 1))], 1)
+        back = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), camera.K, camera.dist)[0].reshape(-1, 2)
+    err = np.inf if back is None or not np.isfinite(back).all() else float(np.abs(back - px.reshape(-1, 2)).max())
+    if not err <= MAX_DISTORTION_ROUNDTRIP_PX:
+        return (f"the distortion coefficients {np.round(camera.dist[:5], 4).tolist()} do not invert over the {w}x{h} "
+                f"image (points move {err:.3g} px on a round trip)", order)
+    pin = (px.reshape(-1, 2) - (camera.cx, camera.cy)) / (camera.fx, camera.fy)
+    rd, ru = np.linalg.norm(pin, axis=1), np.linalg.norm(und, axis=1)
+    far = rd > 0.25 * rd.max()
+    worst = ru[far] / rd[far]
+    if far.any() and not (1.0 / MAX_DISTORTION_SCALE <= worst.min() and worst.max() <= MAX_DISTORTION_SCALE):
+        bad = worst.min() if worst.min() < 1.0 / MAX_DISTORTION_SCALE else worst.max()
+        return (f"the distortion coefficients {np.round(camera.dist[:5], 4).tolist()} scale the view by {bad:.3g} at "
+                f"the image's edge (a lens does at most {MAX_DISTORTION_SCALE:g}x)", order)
+    return None
+
+
+def check_camera_plausible(camera: Camera, source: str) -> Camera:
+    """``camera``, or a one-line :class:`CaptureError` naming ``source`` when it cannot be right
+    (:func:`camera_problem`)."""
+    problem = camera_problem(camera)
+    if problem:
+        raise CaptureError(f"{source}: {problem[0]}; {problem[1]}")
     return camera
 
 

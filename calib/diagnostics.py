@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.calibrate import base_model
 from calib.uncertainty import (CORNER_NAMES, Coverage, Covariance, coverage, image_corners, intrinsic_covariance,
                                pixel_grid, pixel_uncertainty, projection_difference, term_effects_px)
 
@@ -204,6 +205,13 @@ def diagnose(result, options, tolerance_px: float = 1.0, grid_step_px: float | N
             f"lens model undecided: {name} predicts the left-out views about as well as the chosen "
             f"{result.model.name} but differs from it by up to {diff:.2f} px over the image: these views cannot "
             "tell which is right; record the board in the image corners, or choose with --model"
+        )
+    plain = base_model(options.candidates())   # what OpenCV alone would have returned
+    if plain.name in result.implausible:
+        warnings.append(
+            f"lens model {plain.name} fitted to these views is not a real lens ({result.implausible[plain.name]}); "
+            f"{result.model.name} is used instead, and it is extrapolated where no board corner was seen: record more "
+            "views over the whole image"
         )
     if len(result.views) < 6:
         warnings.append(f"only {len(result.views)} views: too few to pin the lens model and to check it by "

@@ -289,6 +289,7 @@ def _report(settings, board, footage, examined, used, dropped, result, camera, c
         "num_views": len(used),
         "model": result.model.name,
         "model_holdout_rms_px": result.model_scores,
+        "model_not_a_lens": result.implausible,
         "model_predicted_uncertainty_max_px": {k: e.sigma_max_px for k, e in result.model_evidence.items()},
         "model_difference_from_default_max_px": {k: e.difference_aligned_max_px
                                                  for k, e in result.model_evidence.items()},
@@ -296,7 +297,9 @@ def _report(settings, board, footage, examined, used, dropped, result, camera, c
                       "as the choice uses it) and largest distance from OpenCV's default model (k1-k3+p, up to the "
                       "camera's rotation) of each candidate lens model; OpenCV's default is used unless a richer "
                       "model predicts the left-out views 3 % better, or its own extra terms are not determined "
-                      "(predicted uncertainty 3.5x a simpler model's, which agrees with it)",
+                      "(predicted uncertainty 3.5x a simpler model's, which agrees with it); a model in "
+                      "model_not_a_lens (what is wrong with it) folds over inside the image or is otherwise no real "
+                      "lens: never used",
         "holdout": {"folds": result.holdout.folds, "rms_px": result.holdout.rms_px,
                     "spread_max_px": diag.spread_max_px, "spread_at_px": diag.spread_at,
                     "spread_fixed_frame_max_px": diag.spread_fixed_frame_max_px},

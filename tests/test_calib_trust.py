@@ -10,6 +10,7 @@ blur / H.264 x weak / strong lens) is ``benchmarks/bench_calib.py``; a represent
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import cv2
@@ -317,6 +318,58 @@ def test_simpler_model_when_opencvs_extra_terms_are_undetermined():
     # and it says that OpenCV's default fits these views as well but lands several px elsewhere
     (undecided,) = [w for w in r["warnings"] if w.startswith("lens model undecided: k1-k3+p ")]
     assert float(undecided.split("by up to ")[1].split(" px")[0]) > 3.0, undecided
+
+
+def central_views_of_a_folding_lens():
+    """8 views whose corners all lie within 0.55 of the optical axis (normalised), projected through distortion
+    ``[-0.2, 0.1, 0, 0, -0.5]``: a lens there, but its k3 folds the image's corners back (no pixel beyond a
+    radius of about 0.6 has a ray). OpenCV's default model fits these corners to 0.07 px and inherits the fold;
+    k1-k2 cannot express it."""
+    from tests.calib_synth import IMAGE_SIZE, TRUE_K, random_poses
+
+    board = parse_board(SPEC)
+    bad = np.array([-0.2, 0.1, 0.0, 0.0, -0.5])
+    obj0 = board.corner_object_points().astype(np.float64)
+    rng = np.random.default_rng(0)
+    obj, img = [], []
+    for p in random_poses(board, TRUE_K, IMAGE_SIZE, 8, seed=3):
+        cam = obj0 @ cv2.Rodrigues(np.asarray(p.rvec))[0].T + p.tvec
+        keep = np.linalg.norm(cam[:, :2] / cam[:, 2:], axis=1) < 0.55
+        uv = cv2.projectPoints(obj0[keep], p.rvec, p.tvec, TRUE_K, bad)[0].reshape(-1, 2)
+        obj.append(obj0[keep].astype(np.float32))
+        img.append((uv + rng.normal(0, 0.05, uv.shape)).astype(np.float32))
+    return obj, img, IMAGE_SIZE
+
+
+def test_a_lens_model_that_folds_over_inside_the_image_is_never_chosen():
+    """Plain OpenCV returns a camera whose distortion does not invert over the image, which every camera
+    reader (capture run's) refuses. ``capture calibrate`` sets that model aside, says so, and writes a model
+    that is a lens; forced to that model it refuses instead of writing a file nothing can use."""
+    from calib.camera_io import camera_problem
+    from capture.io.errors import CaptureError
+
+    obj, img, size = central_views_of_a_folding_lens()
+    labels = [f"v{i}" for i in range(len(obj))]
+    _rms, Kp, dp, _r, _t = cv2.calibrateCamera(obj, img, size, None, None)
+    plain_problem = camera_problem(Camera(Kp, dp.reshape(-1)[:5], size))
+    assert plain_problem and "do not invert" in plain_problem[0], plain_problem   # the independent reference
+
+    result = calibrate_views(obj, img, labels, size)
+    assert result.model.name != OPENCV_DEFAULT.name and camera_problem(result.camera) is None, result.model
+    assert set(result.implausible) == {OPENCV_DEFAULT.name}, result.implausible
+    assert "do not invert" in result.implausible[OPENCV_DEFAULT.name]
+    # the hold-out check would have preferred the folding model: the choice is among the lenses only
+    assert result.model_scores[OPENCV_DEFAULT.name] < result.model_scores[result.model.name]
+    d = diagnose(result, CalibrationOptions())
+    (w,) = [w for w in d.warnings if w.startswith(f"lens model {OPENCV_DEFAULT.name} fitted to these views is not")]
+    assert f"{result.model.name} is used instead" in w and "\n" not in w, w
+    # a rejected candidate that OpenCV alone would not have returned (the rational model) is only reported
+    rational_only = dataclasses.replace(result, implausible={"k1-k6+p": "the distortion coefficients ... fold"})
+    assert not any("not a real lens" in w for w in diagnose(rational_only, CalibrationOptions()).warnings)
+
+    with pytest.raises(CaptureError, match=r"^the k1-k3\+p lens model fitted to these 8 views is not a real lens "
+                                           r"\(the distortion coefficients .* do not invert .*--model k1-k2\)$"):
+        calibrate_views(obj, img, labels, size, CalibrationOptions(model=OPENCV_DEFAULT.name))
 
 
 def test_a_view_no_camera_can_pose_leaves_the_hold_out_check_working(tmp_path):
