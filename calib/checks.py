@@ -3,9 +3,9 @@
 Over a few squares a lens maps the flat board almost exactly by a homography (distortion bends
 straight lines only over larger distances), so each corner's position is predicted from the
 homography fitted to its detected neighbours within ``radius`` squares (``cv2.findHomography``,
-least squares, at least 5 neighbours not on one line). A corner more than ``tolerance`` (0.2) of a
-local square away from its prediction is inconsistent: a mis-identified marker, a corner snapped to
-the wrong saddle, a reflection. Such corners are removed; when more than ``max_bad_fraction`` (25 %)
+least squares, at least 5 neighbours and no line through all of them but one). A corner more than
+``tolerance`` (0.2) of a local square away from its prediction is inconsistent: a mis-identified
+marker, a corner snapped to the wrong saddle, a reflection. Such corners are removed; when more than ``max_bad_fraction`` (25 %)
 of a view's checked corners, and more than one, are inconsistent the whole detection is untrustworthy and
 the view is dropped. One corner alone never condemns a view: in a partial view at the image's edge only
 a few corners have enough neighbours to be checked, and one of 3 is already a third (a blurred corner of
@@ -41,7 +41,7 @@ def corner_inconsistency(detection: Detection, square_mm: float, radius: int = 2
         if len(nb) < 5:
             continue
         src = obj[nb]
-        if np.ptp(src[:, 0]) < 1e-6 or np.ptp(src[:, 1]) < 1e-6:
+        if not _determines_a_homography(src):
             continue
         H, _ = cv2.findHomography(src, img[nb], 0)
         if H is None:
@@ -52,6 +52,21 @@ def corner_inconsistency(detection: Detection, square_mm: float, radius: int = 2
         if square > 1e-6:
             out[k] = np.linalg.norm(pred[0] - img[k]) / square
     return out
+
+
+def _determines_a_homography(points: np.ndarray) -> bool:
+    """True unless one line holds all the ``points`` (m, 2) but one: a homography needs 4 points with no 3 on a
+    line. (Five corners along a partial view's edge and one beside them leave it free to turn about that edge,
+    and then even exact corners look 0.2 square off their prediction.)"""
+    m = len(points)
+    for a in range(m - 1):
+        d = points - points[a]
+        cross = np.abs(d[:, None, 0] * d[None, :, 1] - d[:, None, 1] * d[None, :, 0])   # [b, c]: c on line a-b
+        on_line = (cross < 1e-6).sum(1)
+        on_line[a] = 0
+        if on_line.max() >= m - 1:
+            return False
+    return True
 
 
 def check_detection(detection: Detection, square_mm: float, min_corners: int, tolerance: float = 0.2,
