@@ -218,3 +218,56 @@ def operator_poses(board: BoardSpec, K: np.ndarray, image_size, n: int, seed: in
             continue
         poses.append(Pose(cv2.Rodrigues(R)[0].ravel(), t))
     return poses
+
+
+def corner_poses(board: BoardSpec, K: np.ndarray, image_size, n: int, seed: int = 0, dist=None,
+                 distance=(330.0, 520.0), tilt_deg=(15.0, 40.0), inset_px=(5.0, 20.0)) -> list[Pose]:
+    """Poses as calibration guides ask for them: four of every five views push the whole board into one of the
+    image's corners in turn (its outer edge ``inset_px`` inside the corner, through the lens ``dist``), the
+    fifth goes to the centre or an edge's middle; tilts 15-40 deg about a random axis in the board plane,
+    random roll; at least 85 % of the inner corners inside the image."""
+    rng = np.random.default_rng(seed)
+    w, h = image_size
+    obj = board.corner_object_points().astype(np.float64)
+    bw, bh = board.size_mm
+    outline = np.array([[0.0, 0.0, 0.0], [bw, 0.0, 0.0], [0.0, bh, 0.0], [bw, bh, 0.0]])
+    if board.kind == "checker":
+        outline[:, :2] -= board.square_mm
+    centre = outline.mean(0)
+    dist = np.zeros(5) if dist is None else np.asarray(dist, np.float64)
+    corners = [(0, 0), (1, 1), (1, 0), (0, 1)]
+    others = [(0.5, 0.5), (0.5, 0.2), (0.2, 0.5), (0.8, 0.5), (0.5, 0.8)]
+    order_c, order_o = rng.permutation(4), rng.permutation(len(others))
+    Kinv = np.linalg.inv(K)
+    poses: list[Pose] = []
+    tries = 0
+    while len(poses) < n:
+        tries += 1
+        k = len(poses)
+        axis_ang = rng.uniform(0, 2 * np.pi)
+        axis = np.array([np.cos(axis_ang), np.sin(axis_ang), 0.0])
+        R = cv2.Rodrigues(axis * np.radians(rng.uniform(*tilt_deg)))[0] \
+            @ cv2.Rodrigues(np.array([0, 0, np.radians(rng.uniform(-30, 30))]))[0]
+        z = rng.uniform(*distance)
+        if k % 5 < 4:
+            cx, cy = corners[order_c[(k // 5 * 4 + k % 5) % 4]]
+            inset = rng.uniform(*inset_px, 2)
+            target = np.array([inset[0] if cx == 0 else w - 1 - inset[0], inset[1] if cy == 0 else h - 1 - inset[1]])
+            t = z * (Kinv @ np.array([w / 2, h / 2, 1.0])) - R @ centre
+            cam = outline @ R.T + t
+            uv = cam[:, :2] / cam[:, 2:]
+            i = int(np.argmax((1 if cx else -1) * uv[:, 0] + (1 if cy else -1) * uv[:, 1]))
+            ray = cv2.undistortPoints(target.reshape(1, 1, 2), K, dist).reshape(2)
+            t = t + cam[i, 2] * np.array([ray[0], ray[1], 1.0]) - cam[i]   # that outline corner onto the target
+        else:
+            px, py = others[order_o[(k // 5) % len(others)]]
+            target = np.array([px * w, py * h]) + rng.normal(0, 0.03, 2) * (w, h)
+            t = z * (Kinv @ np.array([target[0], target[1], 1.0])) - R @ centre
+        if np.any((obj @ R.T + t)[:, 2] <= 50):
+            continue
+        uv = cv2.projectPoints(obj, cv2.Rodrigues(R)[0], t, K, dist)[0].reshape(-1, 2)
+        visible = (uv[:, 0] > 8) & (uv[:, 0] < w - 9) & (uv[:, 1] > 8) & (uv[:, 1] < h - 9)
+        if visible.mean() < 0.85 and tries < 5000:
+            continue
+        poses.append(Pose(cv2.Rodrigues(R)[0].ravel(), t))
+    return poses

@@ -262,6 +262,37 @@ def test_bench_calib_quick():
     assert row["ours_mean_aligned_px"] < 0.5 * row["ours_mean_px"] and row["ours_max_aligned_px"] < 1.0
 
 
+def test_bench_calib_corner_poses_push_the_board_into_each_image_corner():
+    """``--poses corners``: views 1-4 of every 5 put the whole board's outline 5-20 px inside one image corner each
+    (through the lens, checked with cv2.projectPoints), the four corners in turn; what calibration guides ask."""
+    import cv2
+
+    from benchmarks.bench_calib import K, LENSES, SIZE, SPEC
+    from calib.board import parse_board
+    from tests.calib_synth import corner_poses
+
+    board = parse_board(SPEC)
+    bw, bh = board.size_mm
+    outline = np.array([[0, 0, 0], [bw, 0, 0], [0, bh, 0], [bw, bh, 0]], np.float64)
+    image_corners = np.array([[0, 0], [SIZE[0] - 1, 0], [0, SIZE[1] - 1], [SIZE[0] - 1, SIZE[1] - 1]], np.float64)
+    for lens, dist in LENSES.items():
+        poses = corner_poses(board, K, SIZE, 10, seed=3, dist=dist)
+        reached = []
+        for k, p in enumerate(poses):
+            uv = cv2.projectPoints(outline, p.rvec, p.tvec, K, dist)[0].reshape(-1, 2)
+            gap = np.linalg.norm(uv[:, None] - image_corners[None], axis=2)   # [outline corner, image corner]
+            if k % 5 < 4:     # (the fifth view goes to the centre or an edge's middle)
+                c = int(np.argmin(gap.min(0)))
+                reached.append(c)
+                assert 5 * np.sqrt(2) - 0.5 <= gap[:, c].min() <= 20 * np.sqrt(2) + 0.5, (lens, k, gap.min())
+        assert sorted(reached[:4]) == sorted(reached[4:]) == [0, 1, 2, 3], (lens, reached)
+    from benchmarks.bench_calib import main
+
+    res = main(["--quick", "--poses", "corners"])
+    (row,) = res["rows"]
+    assert row["poses"] == "corners" and row["ours_max_aligned_px"] <= row["plain_max_aligned_px"] + 0.5
+
+
 def test_bench_calib_models_quick():
     from benchmarks.bench_calib_models import main
 
