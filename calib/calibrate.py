@@ -163,7 +163,8 @@ def calibrate_views(
         if problem:
             implausible[m.name] = problem[0]
     if implausible and len(implausible) == len(candidates):
-        name, problem = next(iter(implausible.items()))
+        name = first.name if first.name in implausible else next(iter(implausible))
+        problem = implausible[name]
         raise CaptureError(
             f"no lens model fitted to these {len(active)} views is a real lens ({name}: {problem}); record more views "
             "over the whole image" if options.model == "auto" else

@@ -1,19 +1,19 @@
 """The geometric check of one detection: every corner must agree with its neighbours on the board.
 
-Over a few squares a lens maps the flat board almost exactly by a homography (distortion bends
-straight lines only over larger distances), so each corner's position is predicted from the
-homography fitted to its detected neighbours within ``radius`` squares (``cv2.findHomography``,
-least squares, at least 5 neighbours and no line through all of them but one). A corner more than
-``tolerance`` (0.2) of a local square away from its prediction is inconsistent: a mis-identified
-marker, a corner snapped to the wrong saddle, a reflection. Such corners are removed; when more than ``max_bad_fraction`` (25 %)
-of a view's checked corners, and more than one, are inconsistent the whole detection is untrustworthy and
-the view is dropped. One corner alone never condemns a view: in a partial view at the image's edge only
-a few corners have enough neighbours to be checked, and one of 3 is already a third (a blurred corner of
-a strongly distorted image can be off by that much; plain OpenCV keeps such views, and dropping one lost
-to it by 0.95 px, BENCHMARKS.md). Nor does it drop a view by leaving it too few corners: a view of
-``min_corners`` with one doubtful corner is kept whole, and a corner a square off (a mis-read marker) then
-makes the view an outlier of the first solve (:mod:`calib.calibrate`), which drops it. Corners with too few
-neighbours are kept unchecked (board edges, partial views).
+Over a few squares a lens maps the flat board almost exactly by a homography (distortion bends straight lines
+only over larger distances), so each corner's position is predicted from the homography fitted to its detected
+neighbours within ``radius`` squares (``cv2.findHomography``, least squares, at least 5 neighbours and no line
+through all of them but one). A corner more than ``tolerance`` (0.2) of a local square away from its
+prediction is inconsistent: a mis-identified marker, a corner snapped to the wrong saddle, a reflection. Such
+corners are removed; when more than ``max_bad_fraction`` (25 %) of a view's checked corners, and more than
+one, are inconsistent the whole detection is untrustworthy and the view is dropped. One corner alone never
+condemns a view: in a partial view at the image's edge only a few corners have enough neighbours to be
+checked, and one of 3 is already a third (a blurred corner of a strongly distorted image can be off by that
+much; plain OpenCV keeps such views, and dropping one lost to it by 0.95 px, BENCHMARKS.md). Nor does it drop
+a view by leaving it too few corners: a view of ``min_corners`` with one doubtful corner is kept whole, and a
+corner a square off (a mis-read marker) then makes the view an outlier of the first solve
+(:mod:`calib.calibrate`), which drops it. Corners with too few neighbours are kept unchecked (board edges,
+partial views).
 """
 
 from __future__ import annotations

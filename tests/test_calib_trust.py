@@ -355,15 +355,15 @@ def test_simpler_model_when_opencvs_extra_terms_are_undetermined():
     assert float(undecided.split("by up to ")[1].split(" px")[0]) > 3.0, undecided
 
 
-def central_views_of_a_folding_lens():
+def central_views_of_a_folding_lens(bad=(-0.2, 0.1, 0.0, 0.0, -0.5)):
     """8 views whose corners all lie within 0.55 of the optical axis (normalised), projected through distortion
-    ``[-0.2, 0.1, 0, 0, -0.5]``: a lens there, but its k3 folds the image's corners back (no pixel beyond a
-    radius of about 0.6 has a ray). OpenCV's default model fits these corners to 0.07 px and inherits the fold;
-    k1-k2 cannot express it."""
+    ``bad``: a lens there, but its k3 folds the image's corners back (no pixel beyond a radius of about 0.6 has
+    a ray). OpenCV's default model fits these corners to 0.07 px and inherits the fold; by default k1-k2 cannot
+    express it."""
     from tests.calib_synth import IMAGE_SIZE, TRUE_K, random_poses
 
     board = parse_board(SPEC)
-    bad = np.array([-0.2, 0.1, 0.0, 0.0, -0.5])
+    bad = np.asarray(bad, np.float64)
     obj0 = board.corner_object_points().astype(np.float64)
     rng = np.random.default_rng(0)
     obj, img = [], []
@@ -405,6 +405,11 @@ def test_a_lens_model_that_folds_over_inside_the_image_is_never_chosen():
     with pytest.raises(CaptureError, match=r"^the k1-k3\+p lens model fitted to these 8 views is not a real lens "
                                            r"\(the distortion coefficients .* do not invert .*--model k1-k2\)$"):
         calibrate_views(obj, img, labels, size, CalibrationOptions(model=OPENCV_DEFAULT.name))
+    # a fold so strong that k1-k2 folds too (k2 -0.22): no candidate is a lens, and the run is refused
+    obj, img, size = central_views_of_a_folding_lens((-0.28, 0.02, 0.0, 0.0, -0.5))
+    with pytest.raises(CaptureError, match=r"^no lens model fitted to these 8 views is a real lens \(k1-k3\+p: the "
+                                           r"distortion coefficients .* do not invert .*record more views"):
+        calibrate_views(obj, img, labels, size)
 
 
 def test_a_view_no_camera_can_pose_leaves_the_hold_out_check_working(tmp_path):
