@@ -1,4 +1,14 @@
-"""One OpenCV calibration solve for a lens model: the step that the model choice and the hold-out check repeat."""
+"""One OpenCV calibration solve for a lens model: the step that the model choice and the hold-out check repeat.
+
+``cv2.calibrateCamera`` starts from a pinhole estimate that ignores distortion (``initIntrinsicParams2D``).
+With a strong lens and views that reach the image's corners, that start is far off, and Levenberg-Marquardt can
+settle in a wrong minimum: at 1920x1080 with k1 = -0.35, 5 of 8 such renders came out with fx 1,900-2,600
+instead of 1,500, an RMS of 1.5-4 px instead of 0.2, and the model hundreds of px off (BENCHMARKS.md). So
+:func:`solve` also calibrates in stages, each starting from the last (``CALIB_USE_INTRINSIC_GUESS``): k1 only,
+then k1 and k2, then the model asked for. It keeps whichever of the two solutions fits the corners better: both
+minimise the same reprojection error, so the lower one is the better solve of the same problem, and where
+OpenCV's start was fine the two agree.
+"""
 
 from __future__ import annotations
 
@@ -25,18 +35,44 @@ class Solve:
 
 def solve(obj: list[np.ndarray], img: list[np.ndarray], image_size: tuple[int, int],
           model: DistortionModel, options) -> Solve:
-    """``cv2.calibrateCameraExtended`` with the flags ``options.flags(model)`` (a
-    :class:`calib.calibrate.CalibrationOptions`); one-line CaptureError if OpenCV fails."""
+    """The better of ``cv2.calibrateCameraExtended`` with the flags ``options.flags(model)`` (a
+    :class:`calib.calibrate.CalibrationOptions`) from OpenCV's own start and from the staged start (module
+    docstring); one-line CaptureError if OpenCV fails both ways."""
     import cv2
 
+    size = tuple(image_size)
+    flags = options.flags(model)
     K0 = np.eye(3)  # only read for CALIB_FIX_ASPECT_RATIO (ratio 1)
+    found, failure = [], None
     try:
-        out = cv2.calibrateCameraExtended(obj, img, tuple(image_size), K0, None, flags=options.flags(model))
+        found.append(cv2.calibrateCameraExtended(obj, img, size, K0, None, flags=flags))
     except cv2.error as exc:
-        detail = str(exc).strip().splitlines()[-1][-120:]
+        failure = exc
+    try:
+        found.append(_staged(obj, img, size, model, flags))
+    except cv2.error as exc:
+        failure = failure or exc
+    if not found:
+        detail = str(failure).strip().splitlines()[-1][-120:]
         raise CaptureError(
             f"OpenCV calibration failed ({detail}); record the board at more distances and tilts"
         ) from None
-    rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = out
+    rms, K, dist, rvecs, tvecs, std_int, _std_ext, per_view = min(found, key=lambda out: out[0])
     return Solve(float(rms), K, dist.reshape(-1)[: model.n_dist].copy(), [r.reshape(3) for r in rvecs],
                  [t.reshape(3) for t in tvecs], std_int.reshape(-1), per_view.reshape(-1))
+
+
+def _staged(obj, img, size, model: DistortionModel, flags: int):
+    """``calibrateCameraExtended`` for ``model`` started from k1 alone, then k1 and k2 (module docstring)."""
+    import cv2
+
+    simple = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
+    keep = flags & (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO)   # the caller's constraints
+    K, dist = np.eye(3), np.zeros(5)
+    for stage in (keep | simple | cv2.CALIB_FIX_K2, keep | simple):
+        guess = cv2.CALIB_USE_INTRINSIC_GUESS if stage & cv2.CALIB_FIX_K2 == 0 else 0
+        _rms, K, dist, _r, _t = cv2.calibrateCamera(obj, img, size, K.copy(), dist.copy(), flags=stage | guess)
+        dist = dist.reshape(-1)[:5]
+    if model.n_dist == 8:
+        dist = np.concatenate([dist, np.zeros(3)])
+    return cv2.calibrateCameraExtended(obj, img, size, K.copy(), dist.copy(), flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)

@@ -376,6 +376,39 @@ def central_views_of_a_folding_lens(bad=(-0.2, 0.1, 0.0, 0.0, -0.5)):
     return obj, img, IMAGE_SIZE
 
 
+@pytest.mark.parametrize("seed", [0, 2, 4])
+def test_a_strong_lens_seen_in_the_image_corners_is_solved_where_opencvs_start_fails(seed):
+    """1920x1080, k1 -0.35: views that push the board into the image's corners (exact projections + 0.1 px noise).
+    OpenCV's pinhole start ignores distortion, and from it Levenberg-Marquardt settles far off on seeds 0 and 4
+    (fx 2,668 / 2,617 instead of 1,500, RMS 4.8 / 9.0 px, the model over 1,000 px off; 14 of 18 such sets, views
+    6-20). The staged start (k1, then k1 and k2, then the model) reaches the noise floor; where OpenCV's start was
+    fine (seed 2) both give the same solve."""
+    from calib.solve import solve
+    from tests.calib_synth import corner_poses
+
+    K_hd = np.array([[1500.0, 0.0, 964.0], [0.0, 1500.0, 538.0], [0.0, 0.0, 1.0]])
+    size, dist = (1920, 1080), np.array([-0.35, 0.16, 0.0006, -0.0004, -0.04])
+    board = parse_board("charuco:cols=9,rows=6,square=30,marker=22,dict=DICT_5X5_100")
+    objp = board.corner_object_points().astype(np.float64)
+    rng = np.random.default_rng(seed)
+    obj, img = [], []
+    for p in corner_poses(board, K_hd, size, 8, seed=seed, dist=dist):
+        uv = cv2.projectPoints(objp, p.rvec, p.tvec, K_hd, dist)[0].reshape(-1, 2)
+        m = (uv[:, 0] > 10) & (uv[:, 0] < size[0] - 11) & (uv[:, 1] > 10) & (uv[:, 1] < size[1] - 11)
+        obj.append(objp[m].astype(np.float32))
+        img.append((uv[m] + rng.normal(0, 0.1, uv[m].shape)).astype(np.float32))
+    rms, Kp, dp, _r, _t = cv2.calibrateCamera(obj, img, size, None, None)
+    s = solve(obj, img, size, OPENCV_DEFAULT, CalibrationOptions())
+    truth = Camera(K_hd, dist, size)
+    grid, _ = pixel_grid(size, 16.0)
+    assert s.rms < 0.16 and abs(s.K[0, 0] - 1500.0) < 5.0, (s.rms, s.K[0, 0])   # 0.1 px noise: RMS 0.13-0.14
+    assert projection_difference(truth, Camera(s.K, s.dist, size), grid, align=True).max() < 1.0
+    if seed == 2:
+        assert rms == pytest.approx(s.rms, abs=1e-6) and np.allclose(Kp, s.K, atol=1e-3)
+    else:   # the independent reference fails here: plain OpenCV from its own start
+        assert rms > 3.0 and Kp[0, 0] > 2000.0, (rms, Kp[0, 0])
+
+
 def test_a_lens_model_that_folds_over_inside_the_image_is_never_chosen():
     """Plain OpenCV returns a camera whose distortion does not invert over the image, which every camera
     reader (capture run's) refuses. ``capture calibrate`` sets that model aside, says so, and writes a model
