@@ -25,6 +25,7 @@ way to the next view), libx264 yuv420p crf 23) x lens (weak, strong distortion).
     python benchmarks/bench_calib.py --quick    # 1 case (a 6-view H.264 video)
     python benchmarks/bench_calib.py --issue    # the issue's 1920x1080 case (9x6 board, 20 views, video)
     python benchmarks/bench_calib.py --poses corners   # views that take the whole board into the image's corners
+    python benchmarks/bench_calib.py --hd --seeds 3    # 1920x1080, the issue's board, its lens and a wide one
 """
 
 from __future__ import annotations
@@ -66,6 +67,10 @@ CONDITIONS = {"clean": dict(blur_sigma=0.5, noise_sigma=2.0), "blur": dict(blur_
 
 
 VIEWS = (6, 8, 12, 20)
+#: ``--hd``: the issue's 1920x1080 camera and board, with the issue's lens and a wide one (about 140 px at the corners)
+HD_K = np.array([[1500.0, 0.0, 964.0], [0.0, 1500.0, 538.0], [0.0, 0.0, 1.0]])
+HD_SIZE = (1920, 1080)
+HD_LENSES = {"issue": np.array([-0.20, 0.08, 0.0, 0.0, 0.0]), "wide": np.array([-0.35, 0.16, 0.0006, -0.0004, -0.04])}
 #: Samples per pixel side of the renders. With 2 (the tables before 2026-12-05) the renders' own edge aliasing adds
 #: corner error: CharucoDetector's corners on clean views 0.068-0.117 px RMS from the truth against 0.060-0.107 with 4
 #: (BENCHMARKS.md); blurred views are the same with either.
@@ -241,8 +246,10 @@ def markdown_table(rows: list[dict], aligned: bool = False) -> str:
            "ours mean px | plain mean px | ours <= 1 px | plain <= 1 px | runs warned | model(s) |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     groups: dict[tuple, list[dict]] = {}
+    mixed = len({r.get("poses", "operator") for r in rows}) > 1   # both pose sets: one line each
     for r in rows:
-        groups.setdefault((r["lens"], r["condition"], r["views"]), []).append(r)
+        lens = f"{r['lens']}, {r.get('poses', 'operator')} poses" if mixed else r["lens"]
+        groups.setdefault((lens, r["condition"], r["views"]), []).append(r)
     for (lens, cond, views), rs in groups.items():
         ours = " / ".join(f"{r[f'ours_max{m}_px']:.2f}" for r in rs)
         plain = " / ".join(f"{r[f'plain_max{m}_px']:.2f}" for r in rs)
@@ -330,6 +337,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--issue", action="store_true", help="the issue's 1920x1080, 9x6-board case instead")
+    ap.add_argument("--hd", action="store_true",
+                    help="1920x1080 with the issue's board: its lens and a wide one, both pose sets, clean and H.264, "
+                         "8 and 20 views, --seeds seeds")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--table", type=Path, help="only print the table of a results JSON written before")
     ap.add_argument("--before", type=Path, help="with --table: an earlier results JSON to show beside it")
@@ -359,16 +369,20 @@ def main(argv: list[str] | None = None) -> dict:
         return res
     cv2.setNumThreads(1)
     rows = []
-    if args.issue:
-        K_hd = np.array([[1500.0, 0.0, 964.0], [0.0, 1500.0, 538.0], [0.0, 0.0, 1.0]])
-        LENSES["issue"] = np.array([-0.20, 0.08, 0.0, 0.0, 0.0])
-        CONDITIONS["h264"] = dict(blur_sigma=0.6, noise_sigma=2.0)
-        for cond in ("clean", "h264"):
-            case = Case(0, 20, cond, "issue")
-            renderer = Renderer(ISSUE_SPEC, K_hd, LENSES["issue"], (1920, 1080), supersample=1, px_per_mm=8.0)
-            r = run_case(case, renderer, ISSUE_SPEC, K_hd, (1920, 1080))
-            rows.append(r)
-            _print_row(r)
+    if args.issue or args.hd:
+        LENSES.update(HD_LENSES)
+        for lens in ("issue",) if args.issue else HD_LENSES:
+            # the issue's case as it was reported (no supersampling); --hd with --supersample (4: 0.5 s a frame)
+            ss = 1 if args.issue else args.supersample
+            renderer = Renderer(ISSUE_SPEC, HD_K, LENSES[lens], HD_SIZE, supersample=ss,
+                                px_per_mm=8.0 if ss == 1 else 5.0 * ss)
+            hd_cases = [Case(0, 20, cond, lens) for cond in ("clean", "h264")] if args.issue else [
+                Case(s, v, c, lens, poses) for poses in ("operator", "corners") for c in ("clean", "h264")
+                for v in (8, 20) for s in range(args.first_seed, args.first_seed + args.seeds)]
+            for case in hd_cases:
+                r = run_case(case, renderer, ISSUE_SPEC, HD_K, HD_SIZE)
+                rows.append(r)
+                _print_row(r)
     else:
         renderers = {lens: Renderer(SPEC, K, d, SIZE, supersample=args.supersample, px_per_mm=3.0 * args.supersample)
                      for lens, d in LENSES.items()}
@@ -386,7 +400,8 @@ def main(argv: list[str] | None = None) -> dict:
     print_headline(res, len(rows))
     if not args.quick:
         args.out.mkdir(parents=True, exist_ok=True)
-        name = ("calib_issue.json" if args.issue else "calib.json" if args.supersample == 2 else
+        name = ("calib_issue.json" if args.issue else "calib_hd.json" if args.hd else
+                "calib.json" if args.supersample == 2 else
                 f"calib_ss{args.supersample}{'_corner_poses' if args.poses == 'corners' else ''}.json")
         write_text(args.out / name, json.dumps(res, indent=1))
     return res

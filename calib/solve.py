@@ -75,4 +75,5 @@ def _staged(obj, img, size, model: DistortionModel, flags: int):
         dist = dist.reshape(-1)[:5]
     if model.n_dist == 8:
         dist = np.concatenate([dist, np.zeros(3)])
-    return cv2.calibrateCameraExtended(obj, img, size, K.copy(), dist.copy(), flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)
+    return cv2.calibrateCameraExtended(obj, img, size, K.copy(), dist.copy(),
+                                       flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)

@@ -381,7 +381,7 @@ def test_a_strong_lens_seen_in_the_image_corners_is_solved_where_opencvs_start_f
     """1920x1080, k1 -0.35: views that push the board into the image's corners (exact projections + 0.1 px noise).
     OpenCV's pinhole start ignores distortion, and from it Levenberg-Marquardt settles far off on seeds 0 and 4
     (fx 2,668 / 2,617 instead of 1,500, RMS 4.8 / 9.0 px, the model over 1,000 px off; 14 of 18 such sets, views
-    6-20). The staged start (k1, then k1 and k2, then the model) reaches the noise floor; where OpenCV's start was
+    8-20). The staged start (k1, then k1 and k2, then the model) reaches the noise floor; where OpenCV's start was
     fine (seed 2) both give the same solve."""
     from calib.solve import solve
     from tests.calib_synth import corner_poses
