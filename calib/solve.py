@@ -62,18 +62,44 @@ def solve(obj: list[np.ndarray], img: list[np.ndarray], image_size: tuple[int, i
                  [t.reshape(3) for t in tvecs], std_int.reshape(-1), per_view.reshape(-1))
 
 
+#: Staged starts by view set (a digest of the corners, the image size and the constraints): every candidate model
+#: and the first solve's rounds start from the same k1-k2 solve of the same views, so it is solved once.
+_STARTS: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+
 def _staged(obj, img, size, model: DistortionModel, flags: int):
     """``calibrateCameraExtended`` for ``model`` started from k1 alone, then k1 and k2 (module docstring)."""
     import cv2
 
-    simple = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
     keep = flags & (cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO)   # the caller's constraints
-    K, dist = np.eye(3), np.zeros(5)
-    for stage in (keep | simple | cv2.CALIB_FIX_K2, keep | simple):
-        guess = cv2.CALIB_USE_INTRINSIC_GUESS if stage & cv2.CALIB_FIX_K2 == 0 else 0
-        _rms, K, dist, _r, _t = cv2.calibrateCamera(obj, img, size, K.copy(), dist.copy(), flags=stage | guess)
-        dist = dist.reshape(-1)[:5]
+    K, dist = _k1_k2_start(obj, img, size, keep)
     if model.n_dist == 8:
         dist = np.concatenate([dist, np.zeros(3)])
     return cv2.calibrateCameraExtended(obj, img, size, K.copy(), dist.copy(),
                                        flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)
+
+
+def _k1_k2_start(obj, img, size, keep: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(K, dist (5,))`` of k1 alone, then k1 and k2 from it, under the constraints ``keep``; cached in
+    :data:`_STARTS` (a pure function of its inputs)."""
+    import hashlib
+
+    import cv2
+
+    h = hashlib.blake2b(repr((tuple(size), keep, [len(o) for o in obj])).encode(), digest_size=16)
+    for o, i in zip(obj, img):
+        h.update(np.ascontiguousarray(o, np.float32).tobytes())
+        h.update(np.ascontiguousarray(i, np.float32).tobytes())
+    key = h.digest()
+    if key not in _STARTS:
+        simple = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
+        K, dist = np.eye(3), np.zeros(5)
+        for stage in (keep | simple | cv2.CALIB_FIX_K2, keep | simple):
+            guess = cv2.CALIB_USE_INTRINSIC_GUESS if stage & cv2.CALIB_FIX_K2 == 0 else 0
+            _rms, K, dist, _r, _t = cv2.calibrateCamera(obj, img, size, K.copy(), dist.copy(), flags=stage | guess)
+            dist = dist.reshape(-1)[:5]
+        if len(_STARTS) >= 256:   # a calibration uses a few dozen view sets
+            _STARTS.clear()
+        _STARTS[key] = (K, dist)
+    K, dist = _STARTS[key]
+    return K.copy(), dist.copy()
