@@ -8,8 +8,10 @@ with several thresholds (``simpler_sigma_ratio``, ``simpler_agreement``) on the 
 prints, per rule, how many runs came out more than 0.5 px worse than OpenCV's default model on the
 same views (= plain `cv2.calibrateCamera`), how many better, and the sum of the gains.
 
-The thresholds in calib.calibrate.CalibrationOptions were chosen on seeds 10-19 with this script;
-benchmarks/bench_calib.py reports seeds 0-2.
+The thresholds in calib.calibrate.CalibrationOptions were chosen on seeds 10-19 with this script, on OpenCV's own
+corners (before stop 55); benchmarks/bench_calib.py reports seeds 0-5. With the corners at the saddle of the
+intensity (calib.subpix) the same seeds determine OpenCV's default model well enough that no rule up to 2.5 / 1 takes
+a simpler one (BENCHMARKS.md).
 
     python benchmarks/bench_calib_models.py --first-seed 10 --seeds 10   # the tuning seeds (240 runs)
     python benchmarks/bench_calib_models.py --quick                      # 2 cases

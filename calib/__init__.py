@@ -8,6 +8,7 @@ The one place where cameras, their files and their conventions live (conventions
 - :mod:`calib.projection`  torch/kornia projection and undistortion (what the fit calls)
 - :mod:`calib.board`       the ``--board SPEC`` grammar
 - :mod:`calib.detect`      board detection through OpenCV
+- :mod:`calib.subpix`      corners at the saddle point of the image intensity
 - :mod:`calib.checks`      the geometric check of one detection (corners vs their neighbours)
 - :mod:`calib.frames`      reading a video or an image folder
 - :mod:`calib.views`       choosing views (only unusable ones dropped; duplicates and cap)

@@ -58,6 +58,11 @@ class BoardSpec:
         return self.cols * self.rows
 
     @property
+    def corner_grid(self) -> tuple[int, int]:
+        """(columns, rows) of the inner-corner grid that corner ids number row by row."""
+        return (self.cols - 1, self.rows - 1) if self.kind == "charuco" else (self.cols, self.rows)
+
+    @property
     def size_mm(self) -> tuple[float, float]:
         """Width and height of the chessboard area in mm (checker: outer squares included)."""
         if self.kind == "charuco":
@@ -79,7 +84,7 @@ class BoardSpec:
         position (i, j) (column i, row j) sits at ``((i + 1) S, (j + 1) S, 0)`` for ChArUco (as
         OpenCV's ``CharucoBoard.getChessboardCorners``) and ``(i S, j S, 0)`` for a checker.
         """
-        nx, ny = (self.cols - 1, self.rows - 1) if self.kind == "charuco" else (self.cols, self.rows)
+        nx, ny = self.corner_grid
         off = 1.0 if self.kind == "charuco" else 0.0
         i, j = np.meshgrid(np.arange(nx), np.arange(ny))
         pts = np.stack([(i.ravel() + off) * self.square_mm, (j.ravel() + off) * self.square_mm,

@@ -1,8 +1,10 @@
-"""Board detection in one image, through OpenCV (ChArUco detector or chessboard finder).
+"""Board detection in one image: OpenCV finds the board, :mod:`calib.subpix` places its corners.
 
-No corner detection of our own: ChArUco corners come from ``cv2.aruco.CharucoDetector.detectBoard``
-(markers, then chessboard corners interpolated and refined to sub-pixel), checkerboard corners from
-``cv2.findChessboardCornersSB`` (the sector-based finder, more accurate than the classic one).
+ChArUco corners come from ``cv2.aruco.CharucoDetector.detectBoard`` (markers, with the missed ones recovered from the
+board's layout, then chessboard corners interpolated and refined to sub-pixel), checkerboard corners from
+``cv2.findChessboardCornersSB`` (the sector-based finder). Each corner is then moved to the saddle point of the
+image intensity around it, which on blurred or strongly distorted views is several times more accurate than
+OpenCV's sub-pixel step (``BENCHMARKS.md``, Calibration).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.board import BoardSpec
+from calib.subpix import refine_saddle, window_half, window_inside
 
 
 @dataclass(frozen=True)
@@ -32,11 +35,19 @@ class BoardDetector:
 
     ``detect(gray)`` returns ``(detection, None)`` or ``(None, reason)`` where reason is a short
     phrase for the report ("no board detected", "too few corners (4 < 6)", "corners collinear").
+
+    ``refine_markers``: ChArUco markers the first pass missed are looked for where the board's layout puts them
+    (OpenCV's ``CharucoParameters.tryRefineMarkers``); on blurred footage that finds the markers near the image's
+    edges. ``saddle``: every corner is then moved to the saddle point of the image intensity
+    (:mod:`calib.subpix`), 3-5x closer to the truth than OpenCV's sub-pixel step on our renders, and corners with no
+    clear saddle are left out. Both on by default; off, the corners are OpenCV's own (what plain OpenCV calibrates
+    from, for comparisons).
     """
 
-    def __init__(self, board: BoardSpec, min_corners: int = 6):
+    def __init__(self, board: BoardSpec, min_corners: int = 6, saddle: bool = True, refine_markers: bool = True):
         import cv2
 
+        self.saddle = bool(saddle)
         self.board = board
         self.min_corners = max(4, int(min_corners))
         self._object_points = board.corner_object_points()
@@ -46,7 +57,9 @@ class BoardDetector:
                 (board.cols, board.rows), float(board.square_mm), float(board.marker_mm), dictionary
             )
             self._cv_board.setLegacyPattern(bool(board.legacy))
-            self._detector = cv2.aruco.CharucoDetector(self._cv_board)
+            charuco = cv2.aruco.CharucoParameters()
+            charuco.tryRefineMarkers = bool(refine_markers)
+            self._detector = cv2.aruco.CharucoDetector(self._cv_board, charuco)
         else:
             self._cv_board = None
             self._detector = None
@@ -70,10 +83,39 @@ class BoardDetector:
         ids = ids.reshape(-1).astype(np.int32)
         if len(ids) < self.min_corners:
             return None, f"too few corners ({len(ids)} < {self.min_corners})"
-        if self._cv_board.checkCharucoCornersCollinear(ids.reshape(-1, 1)):
+        detection, reason = self._finish(gray, corners.reshape(-1, 2), ids)
+        if detection is not None and self._cv_board.checkCharucoCornersCollinear(detection.ids.reshape(-1, 1)):
             return None, "corners collinear"
-        image_points = corners.reshape(-1, 2).astype(np.float32)
-        return Detection(image_points, self._object_points[ids], ids), None
+        return detection, reason
+
+    def _finish(self, gray: np.ndarray, points: np.ndarray, ids: np.ndarray) -> tuple[Detection | None, str | None]:
+        """The detection, with the corners moved to the saddle of the intensity (:mod:`calib.subpix`) when
+        ``saddle``. A corner whose window lies in the image but holds no clear saddle is no corner the fit can vouch
+        for, and is left out; corners within a window of the image's edge keep OpenCV's position."""
+        points = points.astype(np.float64)
+        if self.saddle:
+            half = window_half(self._square_px(ids, points))
+            refined, found = refine_saddle(gray, points, half)
+            keep = found | ~window_inside(points, half, gray.shape)
+            points, ids = refined[keep], ids[keep]
+            if len(ids) < self.min_corners:
+                return None, f"too few corners ({len(ids)} < {self.min_corners}) with a clear saddle"
+        return Detection(points.astype(np.float32), self._object_points[ids], ids), None
+
+    def _square_px(self, ids: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """(n,) side of the squares at each corner in the image: the distance to its nearest detected grid neighbour
+        (the median of the view's where it has none)."""
+        cols = self.board.corner_grid[0]
+        where = {int(i): k for k, i in enumerate(ids)}
+        side = np.full(len(ids), np.nan)
+        for k, i in enumerate(ids):
+            r, c = divmod(int(i), cols)
+            near = [where.get(rr * cols + cc) for rr, cc in ((r + 1, c), (r - 1, c), (r, c + 1), (r, c - 1))
+                    if 0 <= cc < cols]
+            d = [np.linalg.norm(points[j] - points[k]) for j in near if j is not None]
+            if d:
+                side[k] = min(d)
+        return np.where(np.isnan(side), np.nanmedian(side) if np.isfinite(side).any() else 0.0, side)
 
     def _detect_checker(self, gray: np.ndarray) -> tuple[Detection | None, str | None]:
         import cv2
@@ -83,6 +125,5 @@ class BoardDetector:
         found, corners = cv2.findChessboardCornersSB(gray, pattern, flags=flags)
         if not found or corners is None:
             return None, "no board detected"
-        image_points = corners.reshape(-1, 2).astype(np.float32)
-        ids = np.arange(len(image_points), dtype=np.int32)
-        return Detection(image_points, self._object_points, ids), None
+        points = corners.reshape(-1, 2)
+        return self._finish(gray, points, np.arange(len(points), dtype=np.int32))

@@ -298,8 +298,11 @@ def test_bench_calib_models_quick():
 
     res = main(["--quick"])
     assert len(res["runs"]) == 2 and "3.5/0.5" in res["summary"]
-    never_simpler, default = res["summary"]["inf/0"], res["summary"]["3.5/0.5"]
-    assert never_simpler["switched"] == 0 and default["worse_half_px"] == 0 and default["switched"] == 1
+    never_simpler, default, loose = res["summary"]["inf/0"], res["summary"]["3.5/0.5"], res["summary"]["2/1.5"]
+    # with the saddle corners (stop 55) the default keeps OpenCV's model on both runs; the loosest rule takes the
+    # simpler model on the 6-view H.264 run and loses 1.6 px by it: what the default's thresholds guard against
+    assert never_simpler["switched"] == 0 and default["switched"] == 0 and default["worse_half_px"] == 0
+    assert loose["switched"] >= 1 and loose["worst_px"] > 0.5
 
 
 def test_bench_overlay_quick():

@@ -5,9 +5,10 @@ camera, blurred, with noise). OpenCV's calibration is the reference algorithm; w
 our detection wiring, view selection, outlier rejection, files and error messages.
 
 Tolerances (from the issue) and why they are meaningful here: fx, fy within 0.5 % (3 px), cx, cy
-within 2 px, RMS below 0.5 px. The renders' corner noise is ~0.1 px, so a correct pipeline lands far
-inside them (typically 0.05 % and 0.7 px); a wrong pixel-centre convention (0.5 px), object points
-in the wrong units or order, or ignored distortion (k1 = -0.22 bends the corners by several px) fail.
+within 2 px, RMS below 0.5 px. The renders' corner noise is ~0.03 px (OpenCV's own corners ~0.1 px),
+so a correct pipeline lands far inside them (typically 0.05 % and 0.7 px); a wrong pixel-centre
+convention (0.5 px), object points in the wrong units or order, or ignored distortion (k1 = -0.22
+bends the corners by several px) fail.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ from calib.calibrate import CalibrationOptions, calibrate_views, solve
 from calib.camera import Camera
 from calib.checks import check_detection, corner_inconsistency
 from calib.diagnostics import diagnose, missed_corners
-from calib.detect import Detection
+from calib.detect import BoardDetector, Detection
 from calib.models import OPENCV_DEFAULT
 from calib.uncertainty import (implied_rotation, intrinsic_covariance, pixel_grid, pixel_uncertainty,
                               projection_difference)
@@ -342,16 +342,33 @@ def test_never_worse_than_plain_opencv(case):
     assert r["ours_max_aligned_px"] <= 1.0 or r["warnings"], r  # beyond 1 px the run must say it is unsure
 
 
-def test_simpler_model_when_opencvs_extra_terms_are_undetermined():
+def test_simpler_model_when_opencvs_extra_terms_are_undetermined(tmp_path):
     """The model choice still drops k3 when OpenCV's default cannot determine it at all. On this render
     (8 blurred views, none in the image corners; seed 18 is one of the seeds the thresholds were set
-    on) OpenCV's k3 runs away: its predicted uncertainty is 7-8 times k1-k2+p's, plain is 6.8 px off
-    and k1-k2+p 1.4 px."""
-    r = run_case(Case(18, 8, "blur", "strong"))
-    assert r["model"] == "k1-k2+p", r
-    assert r["ours_max_px"] < r["plain_max_px"] - 3.0, r
+    on) and with OpenCV's own corners (the detector without recovered markers or the saddle step, what
+    `capture calibrate` used before stop 55 and plain OpenCV uses), OpenCV's k3 runs away: its predicted
+    uncertainty is 7-8 times k1-k2+p's, plain is 6.8 px off and k1-k2+p 1.4 px. (With today's corners
+    the same footage determines k3: OpenCV's default model is 0.16 px off, in a scratch run of stop 55.)"""
+    from benchmarks.bench_calib import render_case
+
+    _inp, images, truth = render_case(Case(18, 8, "blur", "strong"), tmp_path)
+    board = parse_board(SPEC)
+    detector = BoardDetector(board, saddle=False, refine_markers=False)
+    obj, img = [], []
+    for gray in images:
+        det, _ = detector.detect(gray)
+        if det is not None:
+            det, _ = check_detection(det, board.square_mm, detector.min_corners)
+        if det is not None:
+            obj.append(det.object_points)
+            img.append(det.image_points)
+    options = CalibrationOptions()
+    res = calibrate_views(obj, img, [f"v{i}" for i in range(len(obj))], SIZE, options)
+    assert res.model.name == "k1-k2+p"
+    ours, plain = model_error(truth, res.camera)[0], model_error(truth, _plain(obj, img))[0]
+    assert ours < plain - 3.0, (ours, plain)
     # and it says that OpenCV's default fits these views as well but lands several px elsewhere
-    (undecided,) = [w for w in r["warnings"] if w.startswith("lens model undecided: k1-k3+p ")]
+    (undecided,) = [w for w in diagnose(res, options).warnings if w.startswith("lens model undecided: k1-k3+p ")]
     assert float(undecided.split("by up to ")[1].split(" px")[0]) > 3.0, undecided
 
 
@@ -445,20 +462,37 @@ def test_a_lens_model_that_folds_over_inside_the_image_is_never_chosen():
         calibrate_views(obj, img, labels, size)
 
 
-def test_a_view_no_camera_can_pose_leaves_the_hold_out_check_working(tmp_path):
-    """In this H.264 take one kept frame shows only 6 corners in two rows, which solvePnP (IPPE)
-    cannot pose. It once made every model's hold-out error inf (no model choice, a warning that the
-    check failed) and the report unwritable (JSON has no inf). Now it is left out of the pooled error
-    and reported as null."""
+def test_a_view_no_camera_can_pose_leaves_the_hold_out_check_working(tmp_path, monkeypatch):
+    """A kept view that solvePnP (IPPE) cannot pose once made every model's hold-out error inf (no model choice, a
+    warning that the check failed) and the report unwritable (JSON has no inf). That view was an H.264 frame with 6
+    corners in two rows; the corner detection of stop 55 finds more corners there, so the failure is now simulated:
+    the view with the fewest corners cannot be posed by any hold-out camera. It is left out of the pooled error and
+    reported as null."""
+    import calib.holdout
     from benchmarks.bench_calib import render_case
     from calib.pipeline import CalibrateSettings, run_calibrate
 
-    inp, _images, _truth = render_case(Case(12, 12, "h264", "weak"), tmp_path)
+    inp, _images, _truth = render_case(Case(12, 8, "clean", "weak"), tmp_path)
+    fewest = []
+    real = calib.holdout.pnp_residuals
+
+    def unposable(obj, img, K, dist):
+        if len(obj) == min(fewest):
+            return np.full(len(obj), np.inf)
+        return real(obj, img, K, dist)
+
+    def counting(obj, img, K, dist):
+        fewest.append(len(obj))
+        return real(obj, img, K, dist)
+
+    monkeypatch.setattr(calib.holdout, "pnp_residuals", counting)
+    run_calibrate(CalibrateSettings(input=inp, board=SPEC, out=tmp_path / "first.json", progress=False))
+    monkeypatch.setattr(calib.holdout, "pnp_residuals", unposable)
     out = run_calibrate(CalibrateSettings(input=inp, board=SPEC, out=tmp_path / "cam.json", progress=False))
     report = json.loads(out.report.read_text())
     assert all(np.isfinite(v) for v in report["model_holdout_rms_px"].values()), report["model_holdout_rms_px"]
     unposed = [v for v in report["views"] if v["holdout_rms_px"] is None]
-    assert len(unposed) == 1 and unposed[0]["corners"] == 6, unposed
+    assert len(unposed) == 1 and unposed[0]["corners"] == min(fewest), unposed
     assert not any("hold-out check failed" in w for w in report["warnings"])
 
 
@@ -507,13 +541,15 @@ def test_missed_corners_counts_what_the_true_camera_had_in_view():
 
 
 def test_blurred_board_corners_the_detector_missed_are_reported_and_warned(tmp_path):
-    """On blurred renders OpenCV's ChArUco detector finds about half of the corners in view (46 % measured),
-    on clean ones nearly all (98 %); the counts in view equal the true camera's, view by view; only the blurred
-    footage is warned, and told that the board came near the bare image corners without being detected."""
+    """On blurred renders the ChArUco detector misses many of the corners in view, on clean ones nearly none
+    (98 %); the counts in view equal the true camera's, view by view; only the blurred footage is warned (below
+    70 %), and told that the board came near the bare image corners without being detected. At a 1.8 px blur
+    OpenCV's defaults found 46 %; with the missed markers recovered from the board's layout (stop 55) 72 %, so the
+    blur here is 2.2 px (61 %)."""
     renderer = Renderer(SPEC, K, LENSES["strong"], SIZE)
     poses = operator_poses(renderer.board, K, SIZE, 10, seed=3)
     reports = {}
-    looks = {"clean": dict(blur_sigma=0.5, noise_sigma=2.0), "blur": dict(blur_sigma=1.8, noise_sigma=3.0)}
+    looks = {"clean": dict(blur_sigma=0.5, noise_sigma=2.0), "blur": dict(blur_sigma=2.2, noise_sigma=3.0)}
     for name, look in looks.items():
         rng = np.random.default_rng(3)
         write_images(tmp_path / name, [renderer.render(p, rng=rng, **look) for p in poses])
@@ -524,7 +560,7 @@ def test_blurred_board_corners_the_detector_missed_are_reported_and_warned(tmp_p
         for v in reports[name]["views"]:
             assert v["corners_in_view"] == truth[v["label"]], (name, v["label"])
     clean, blur = reports["clean"], reports["blur"]
-    assert clean["corners_detected_fraction"] > 0.9 and blur["corners_detected_fraction"] < 0.6
+    assert clean["corners_detected_fraction"] > 0.9 and blur["corners_detected_fraction"] < 0.7
     assert blur["corners_in_view"] == clean["corners_in_view"]
     assert not any("the detector found only" in w for w in clean["warnings"])
     assert any(w.startswith("the detector found only") for w in blur["warnings"])
