@@ -30,6 +30,14 @@ class Detection:
     ids: np.ndarray
 
 
+def one_square_pairs(object_points: np.ndarray, square_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs ``(i, j)`` (both orders) of corners one square apart on the board, from their board coordinates
+    ``object_points`` (n, 2 or 3) mm."""
+    obj = np.asarray(object_points, np.float64)[:, :2]
+    d = np.linalg.norm(obj[:, None] - obj[None], axis=2)
+    return np.nonzero(np.abs(d - square_mm) < 1e-3 * square_mm)
+
+
 class BoardDetector:
     """Finds a :class:`~calib.board.BoardSpec` board in grayscale images.
 
@@ -103,19 +111,13 @@ class BoardDetector:
         return Detection(points.astype(np.float32), self._object_points[ids], ids), None
 
     def _square_px(self, ids: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """(n,) side of the squares at each corner in the image: the distance to its nearest detected grid neighbour
-        (the median of the view's where it has none)."""
-        cols = self.board.corner_grid[0]
-        where = {int(i): k for k, i in enumerate(ids)}
-        side = np.full(len(ids), np.nan)
-        for k, i in enumerate(ids):
-            r, c = divmod(int(i), cols)
-            near = [where.get(rr * cols + cc) for rr, cc in ((r + 1, c), (r - 1, c), (r, c + 1), (r, c - 1))
-                    if 0 <= cc < cols]
-            d = [np.linalg.norm(points[j] - points[k]) for j in near if j is not None]
-            if d:
-                side[k] = min(d)
-        return np.where(np.isnan(side), np.nanmedian(side) if np.isfinite(side).any() else 0.0, side)
+        """(n,) side of the squares at each corner in the image: the distance to its nearest detected neighbour one
+        square away on the board (the median of the view's where it has none)."""
+        i, j = one_square_pairs(self._object_points[ids], self.board.square_mm)
+        side = np.full(len(ids), np.inf)
+        np.minimum.at(side, i, np.linalg.norm(points[i] - points[j], axis=1))
+        known = np.isfinite(side)
+        return np.where(known, side, np.median(side[known]) if known.any() else 0.0)
 
     def _detect_checker(self, gray: np.ndarray) -> tuple[Detection | None, str | None]:
         import cv2

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.detect import Detection
+from calib.detect import Detection, one_square_pairs
 
 TILT_BIN_DEG = 15.0
 GRID_COLS = 8  # coverage grid used for choosing views; rows follow the aspect ratio
@@ -125,9 +125,8 @@ def measure_edge_width(gray: np.ndarray, points: np.ndarray) -> float:
 
 def measure_square_px(detection: Detection, square_mm: float) -> float:
     """Median image distance between corners one square apart on the board (px)."""
-    obj, img = detection.object_points[:, :2].astype(np.float64), detection.image_points.astype(np.float64)
-    d_obj = np.linalg.norm(obj[:, None] - obj[None], axis=2)
-    i, j = np.nonzero(np.abs(d_obj - square_mm) < 1e-3 * square_mm)
+    img = detection.image_points.astype(np.float64)
+    i, j = one_square_pairs(detection.object_points, square_mm)
     if len(i) == 0:
         return float("nan")
     return float(np.median(np.linalg.norm(img[i] - img[j], axis=1)))
