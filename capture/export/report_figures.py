@@ -98,7 +98,10 @@ class FigureProcess:
         self._conn, child = ctx.Pipe()
         args = (child, self._conn if START_METHOD == "fork" else None, prepare_later)
         self._proc = ctx.Process(target=_serve, args=args, name="capture-report-figures", daemon=True)
-        self._proc.start()
+        from capture.io.threads import opencv_pool_stopped
+
+        with opencv_pool_stopped():
+            self._proc.start()
         child.close()
         self._series, self._sent = None, False
         self._send_lock = threading.Lock()

@@ -12,8 +12,10 @@ rows, the fits, the PnP model and, at the end, the actor's rig). The parent's ac
 its networks (:class:`capture.actor.package.Actor` makes them on first use): then the child imports
 torch and builds them while the parent decodes and detects, and the parent never needs torch. Fork it
 before the parent starts other threads (a lock held by another thread at the fork would stay held in
-the child). Off Linux (no fork on Windows; macOS' system libraries are not fork-safe), or with
-``in_process=False``, the same code runs in a thread, through the same pipes.
+the child; OpenCV's pool is stopped around the fork, :func:`capture.io.threads.opencv_pool_stopped`). Off Linux
+(no fork on Windows; macOS' system libraries are not fork-safe), with ``in_process=False``, or for a fit of more
+than one thread in a process that loaded torch (:func:`torch_forbids_fork`), the same code runs in a thread,
+through the same pipes.
 
 A command can fork the fit process before its own start-up (:func:`prestart`, ``capture run``): it imports torch
 and the fit (about 1 s) while the command loads its inputs on the other core, then waits for its take, which the
@@ -57,6 +59,7 @@ import time
 import traceback
 from typing import Iterable, Iterator
 
+from capture.io.threads import opencv_pool_stopped
 from models.mesh_map import map_vertices
 
 END = "end"
@@ -193,6 +196,16 @@ _PRESTARTED: list[tuple] = []
 PRESTART_IMPORTS = ("torch", "capture.fit.stream", "capture.fit.take", "models.fit_state")
 
 
+def torch_forbids_fork(threads: int) -> bool:
+    """Whether a forked fit of ``threads`` torch threads could hang: torch is loaded here, and so its OpenMP pool
+    may have run with several threads (a script that trained an actor, then runs a take). A forked child of such
+    a process that runs torch on more than one thread waits for ever in its first parallel region (GNU OpenMP is
+    not fork-safe); on one thread it does not use the pool. ``capture`` commands never load torch outside the fit
+    process, so this holds only for library callers, whose fit then runs in a thread (a prestarted process is then
+    not taken: it forked from the same process)."""
+    return int(threads) > 1 and "torch" in sys.modules
+
+
 def prestart() -> bool:
     """Fork the fit process now, before the caller's own imports and threads (where :meth:`FitWorker.forks`): it
     imports torch and the fit while the caller starts, then waits for the next :class:`FitWorker` that forks, which
@@ -202,7 +215,8 @@ def prestart() -> bool:
     ctx = multiprocessing.get_context("fork")
     child_ends, parent_ends = _fit_pipes(ctx)
     proc = ctx.Process(target=_prestarted_main, args=(*child_ends, parent_ends), name="capture-fit", daemon=True)
-    proc.start()
+    with opencv_pool_stopped():      # the child sets OpenCV's pool (limit_native_pools): it must inherit none
+        proc.start()
     for c in child_ends:
         c.close()
     _PRESTARTED.append((proc, *parent_ends))
@@ -309,18 +323,27 @@ class FitWorker:
     """
 
     @staticmethod
-    def forks(in_process: bool | None = None) -> bool:
-        """Whether a worker made with ``in_process`` runs the fit in a forked process (else in a thread, which
-        starts in the constructor: load C extensions such as pxr before it, see capture.run.stream)."""
-        if in_process is None:     # fork is safe on Linux; macOS' system libraries are not fork-safe
-            return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+    def forks(in_process: bool | None = None, threads: int = 1) -> bool:
+        """Whether a worker made with ``in_process`` and ``threads`` runs the fit in a forked process (else in a
+        thread, which starts in the constructor: load C extensions such as pxr before it, see capture.run.stream).
+
+        By default it forks on Linux (macOS' system libraries are not fork-safe), except for a fit of more than
+        one thread in a process that has loaded torch (:func:`torch_forbids_fork`)."""
+        if in_process is None:
+            return (sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+                    and not torch_forbids_fork(threads))
         return bool(in_process)
 
     def __init__(self, actor, template_points, camera, how, causal: bool = False, threads: int = 1,
                  in_process: bool | None = None, nice: int = 0):
         from capture.fit.init import PnPSettings
 
-        self.in_process = self.forks(in_process)
+        self.in_process = self.forks(in_process, threads)
+        #: why the fit runs in a thread (for the run's record), None in a process
+        self.thread_reason = None if self.in_process else (
+            "asked for" if in_process is not None else
+            f"torch is loaded in this process and the fit has {threads} threads" if torch_forbids_fork(threads)
+            else "no fork on this platform")
         self.actor = actor
         take = ("take", actor, template_points, camera, how, causal, threads, False, nice)
         taken = _take_prestarted(take) if self.in_process else None
@@ -351,7 +374,8 @@ class FitWorker:
                 template_points, camera, how, causal, threads, not self.in_process, nice)
         if self.in_process:
             self._proc = ctx.Process(target=_child_main, args=args, name="capture-fit", daemon=True)
-            self._proc.start()
+            with opencv_pool_stopped():
+                self._proc.start()
             for c in (self._rows_child, self._out_child, self._ready_child):
                 c.close()
         else:

@@ -12,6 +12,7 @@ OpenBLAS worker spins: in a 1,200-frame 720p run on two cores, one such worker o
 run's 25 CPU-s, and the run took 13.0-13.8 s against 10.6-10.9 with one thread (``BENCHMARKS.md``, streaming
 pipeline, twentieth round). The pools are set through threadpoolctl, on the libraries loaded at the call (this
 loads OpenCV's); a forked fit process inherits them.
+OpenCV's pool is stopped around every fork of the run (:func:`opencv_pool_stopped`): it is not fork-safe.
 torch's threads are set by the fit's process (:mod:`capture.fit.process`), onnxruntime's by the detector's
 session (:mod:`capture.detector.session`).
 """
@@ -19,6 +20,8 @@ session (:mod:`capture.detector.session`).
 from __future__ import annotations
 
 import sys
+from contextlib import contextmanager
+from typing import Iterator
 
 _LIMIT: dict[str, int] = {}
 
@@ -63,3 +66,28 @@ def limit_usd_pool() -> None:
         from pxr import Work
 
         Work.SetConcurrencyLimit(n)
+
+
+@contextmanager
+def opencv_pool_stopped() -> Iterator[None]:
+    """Fork inside this: OpenCV's worker threads are ended for it and started again after (nothing to do where
+    cv2 is not loaded). Only the parent runs the code after the fork, so the number of threads is restored
+    only there.
+
+    OpenCV's pthreads pool is not fork-safe. A worker that has stopped spinning and waits on its condition
+    variable (one second after the last parallel call was enough) leaves the variable "in use" in a forked child,
+    where that worker does not exist. The child's first call that reconfigures or uses the pool (``cv2.setNumThreads``,
+    any parallel loop) then waits forever. A process that calibrated a camera and then ran ``capture run``
+    hung so. With one thread the pool has no workers (their ``pthread_join`` runs here, in the parent, where
+    they exist), so the child inherits none.
+    """
+    cv2 = sys.modules.get("cv2")
+    if cv2 is None:
+        yield
+        return
+    n = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(n)

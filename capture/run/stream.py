@@ -563,7 +563,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         timings = worker.timings
         clocks["fit"].busy = float(timings.get("busy_s", 0.0))
         clocks["fit"].extra = {"chunks": chunks, "frames": fitted, "process": worker.in_process,
-                               "prestarted": worker.prestarted,
+                               "prestarted": worker.prestarted, "thread_reason": worker.thread_reason,
                                **{k: v for k, v in timings.items() if isinstance(v, (int, float))}}
         fits.put(_END)
 
@@ -583,7 +583,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     # worker) starts importing torch at once, so the writers (pxr) are opened before it: pxr's loading in one
     # thread while another imported kornia deadlocked a batch take (the loader lock against the GIL)
     in_process = None if cfg.side_processes else False
-    early = None if FitWorker.forks(in_process) else open_exporters(formats, out, ctx)
+    early = None if FitWorker.forks(in_process, cfg.threads) else open_exporters(formats, out, ctx)
     try:
         worker = FitWorker(inputs.actor, inputs.landmark_points, inputs.camera.camera, how, threads=cfg.threads,
                            in_process=in_process, nice=BACKGROUND_NICE)   # detection sets the pace (capture.io.priority)
@@ -681,6 +681,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
         {"stage": "fit", "status": "done", "seconds": c["fit"].busy, "finished_after_s": c["fit"].finished,
          "frames": len(fx.get("frames", [])), "fit_dir": str(final), "streamed": True,
          "fit_process": bool(fx.get("process")), "fit_process_prestarted": bool(fx.get("prestarted")),
+         "fit_thread_reason": fx.get("thread_reason"),
          **{k: fx[k] for k in ("query_s", "pnp_s", "solve_s", "outputs_s", "windows_solved", "windows_cached",
                                     "peak_rss_mb", "landmark_noise_px", "landmarks_per_frame",
                                     "temporal_prior_scale_min", "temporal_prior_scale_max")
