@@ -115,13 +115,12 @@ def pose_free_error(v: np.ndarray, g: np.ndarray, iterations: int = 20) -> float
     """The mean distance of ``v`` (N, 3) to ``g`` (N, 3) after the rigid motion that minimises it: Kabsch with
     weights 1 / distance, iterated (Weiszfeld's scheme; each step lowers the mean distance). A least-squares
     alignment would not do: the mouth's few large errors pull it, and the mean rises on the rest of the face."""
+    from capture.fit.init import rigid_align
+
     best = e = np.linalg.norm(v - g, axis=1)
     for _ in range(iterations):
-        w = 1.0 / np.maximum(e, 1e-3)
-        ms, md = w @ v / w.sum(), w @ g / w.sum()
-        U, _, Vt = np.linalg.svd(((v - ms) * w[:, None]).T @ (g - md))
-        R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
-        e = np.linalg.norm((v - ms) @ R.T + md - g, axis=1)
+        R, t = rigid_align(v, g, 1.0 / np.maximum(e, 1e-3))
+        e = np.linalg.norm(v @ R.T + t - g, axis=1)
         best = e if e.mean() < best.mean() else best
     return float(best.mean())
 

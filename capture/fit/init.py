@@ -235,10 +235,17 @@ def initial_head_poses(model_points: np.ndarray, points2d: np.ndarray, weights: 
     return R, t, found
 
 
-def rigid_align(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rigid ``(R, t)`` with ``R @ src + t ~ dst`` (Kabsch); ``src, dst (N, 3)``."""
-    ms, md = src.mean(0), dst.mean(0)
-    H = (src - ms).T @ (dst - md)
+def rigid_align(src: np.ndarray, dst: np.ndarray,
+                weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid ``(R, t)`` with ``R @ src + t ~ dst`` (Kabsch); ``src, dst (N, 3)``, optional
+    ``weights (N,)`` >= 0 on the squared residuals."""
+    if weights is None:
+        ms, md = src.mean(0), dst.mean(0)
+        H = (src - ms).T @ (dst - md)
+    else:
+        w = np.asarray(weights, np.float64)
+        ms, md = w @ src / w.sum(), w @ dst / w.sum()
+        H = ((src - ms) * w[:, None]).T @ (dst - md)
     U, _, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(Vt.T @ U.T))
     R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
