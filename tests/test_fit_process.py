@@ -419,17 +419,22 @@ def test_the_pnp_model_comes_before_the_networks_are_evaluated_and_wait_ready_wa
         worker.close()
 
 
-#: OpenCV's pool busy on 2 threads, then idle long enough for its workers to wait on their condition variables;
-#: then a forked child that sets and uses the pool (as the prestarted fit process does: limit_native_pools)
-_FORK_AFTER_OPENCV = """
-import multiprocessing as mp, sys, time
+#: OpenCV's pool busy on 2 threads (as in a calibration), then idle long enough for its workers to wait on their
+#: condition variables
+_OPENCV_BUSY_THEN_IDLE = """
+import sys, time
 import numpy as np, cv2
-from capture.io.threads import opencv_pool_stopped
 cv2.setNumThreads(2)
 a = np.random.default_rng(0).random((1500, 1500), dtype=np.float32)
 for _ in range(3):
     cv2.GaussianBlur(a, (0, 0), 3)
 time.sleep(1.5)
+"""
+
+#: then a forked child that sets and uses the pool (as the prestarted fit process does: limit_native_pools)
+_FORK_AFTER_OPENCV = _OPENCV_BUSY_THEN_IDLE + """
+import multiprocessing as mp
+from capture.io.threads import opencv_pool_stopped
 def child():
     cv2.setNumThreads(1)
     cv2.GaussianBlur(a, (0, 0), 3)
@@ -444,6 +449,9 @@ print("CHILD", p.exitcode, "THREADS", cv2.getNumThreads(), flush=True)
 if p.is_alive():
     p.kill()
 """
+
+#: then ``capture run`` in the same process, through the library
+_RUN_AFTER_OPENCV = _OPENCV_BUSY_THEN_IDLE + "from capture.cli import main\nsys.exit(main(sys.argv[1:]))\n"
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the fit forks only on Linux")
@@ -465,36 +473,10 @@ def test_a_child_forked_with_opencvs_pool_stopped_can_use_opencv():
     assert out["stopped"] == ["CHILD", "0", "THREADS", "2"], out
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the fit forks only on Linux")
-def test_capture_run_in_a_process_that_already_ran_opencv(take, tmp_path):
-    """A pipeline script that calibrates (OpenCV on its pool) and then runs a take through the library in the same
-    process: the prestarted fit process set OpenCV's pool it had inherited and waited for ever. The run must
-    finish, with the fit in its prestarted process."""
-    import json
-    import subprocess
-    from pathlib import Path
-
-    actor, _, _, _, take_dir = take
-    out = tmp_path / "run"
-    code = ("import sys, time\nimport numpy as np, cv2\nfrom capture.cli import main\n"
-            "cv2.setNumThreads(2)\na = np.random.default_rng(0).random((1500, 1500), dtype=np.float32)\n"
-            "for _ in range(3):\n    cv2.GaussianBlur(a, (0, 0), 3)\n"
-            "time.sleep(1.5)\nsys.exit(main(sys.argv[1:]))\n")
-    root = Path(__file__).resolve().parents[1]
-    r = subprocess.run([sys.executable, "-c", code, "run", str(take_dir / "take.mp4"), "--actor", str(actor.path),
-                        "--camera", str(take_dir / "camera.json"), "--out", str(out), "--formats", "npz",
-                        "--iterations", "5", "--no-progress"], cwd=root, capture_output=True, text=True,
-                       timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
-    report = json.loads((out / "report.json").read_text())
-    fit = next(s for s in report["stages"] if s["stage"] == "fit")
-    assert fit["fit_process_prestarted"] is True and report["frames"]["fitted"] == N_FRAMES
-
-
 #: torch's OpenMP pool run on 2 threads (as training an actor does), then idle; then ``capture run`` in the same
 #: process, through the library
 _RUN_AFTER_TORCH = """
-import json, sys, time
+import sys, time
 import torch
 from capture.cli import main
 torch.set_num_threads(2)
@@ -506,27 +488,44 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+def _run_in_a_script(code: str, take, out, *extra: str) -> dict:
+    """``capture run`` of the module's take (npz only, 5 iterations) in a fresh Python that runs ``code``, which
+    ends in ``sys.exit(main(sys.argv[1:]))``; asserts it succeeded and returns its report."""
+    import json
+    import subprocess
+    from pathlib import Path
+
+    actor, _, _, _, take_dir = take
+    r = subprocess.run([sys.executable, "-c", code, "run", str(take_dir / "take.mp4"), "--actor", str(actor.path),
+                        "--camera", str(take_dir / "camera.json"), "--out", str(out), "--formats", "npz",
+                        "--iterations", "5", "--no-progress", *extra],
+                       cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"]["fitted"] == N_FRAMES
+    return report
+
+
+def _fit_stage(report: dict) -> dict:
+    return next(s for s in report["stages"] if s["stage"] == "fit")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the fit forks only on Linux")
+def test_capture_run_in_a_process_that_already_ran_opencv(take, tmp_path):
+    """A pipeline script that calibrates (OpenCV on its pool) and then runs a take through the library in the same
+    process: the prestarted fit process set OpenCV's pool it had inherited and waited for ever. The run must
+    finish, with the fit in its prestarted process."""
+    fit = _fit_stage(_run_in_a_script(_RUN_AFTER_OPENCV, take, tmp_path / "run"))
+    assert fit["fit_process_prestarted"] is True
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the fit forks only on Linux")
 @pytest.mark.parametrize("threads", [1, 2])
 def test_capture_run_in_a_process_that_already_ran_torch_on_two_threads(take, tmp_path, threads):
     """A script that trains an actor (torch's OpenMP pool on 2 threads) and then runs a take in the same process:
     a forked fit on 2 threads waited for ever in its first parallel region. With ``--threads 2`` the fit runs in a
     thread, and the run says why; with 1 it still forks (one thread does not touch the pool)."""
-    import json
-    import subprocess
-    from pathlib import Path
-
-    actor, _, _, _, take_dir = take
-    out = tmp_path / "run"
-    root = Path(__file__).resolve().parents[1]
-    r = subprocess.run([sys.executable, "-c", _RUN_AFTER_TORCH, "run", str(take_dir / "take.mp4"), "--actor",
-                        str(actor.path), "--camera", str(take_dir / "camera.json"), "--out", str(out),
-                        "--formats", "npz", "--iterations", "5", "--threads", str(threads), "--no-progress"],
-                       cwd=root, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
-    report = json.loads((out / "report.json").read_text())
-    fit = next(s for s in report["stages"] if s["stage"] == "fit")
-    assert report["frames"]["fitted"] == N_FRAMES
+    fit = _fit_stage(_run_in_a_script(_RUN_AFTER_TORCH, take, tmp_path / "run", "--threads", str(threads)))
     if threads == 1:
         assert fit["fit_process"] is True and fit["fit_thread_reason"] is None
     else:
