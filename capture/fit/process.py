@@ -329,21 +329,27 @@ class FitWorker:
 
         By default it forks on Linux (macOS' system libraries are not fork-safe), except for a fit of more than
         one thread in a process that has loaded torch (:func:`torch_forbids_fork`)."""
-        if in_process is None:
-            return (sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
-                    and not torch_forbids_fork(threads))
-        return bool(in_process)
+        return FitWorker.thread_reason_for(in_process, threads) is None
+
+    @staticmethod
+    def thread_reason_for(in_process: bool | None = None, threads: int = 1) -> str | None:
+        """Why a worker made with ``in_process`` and ``threads`` runs the fit in a thread (for the run's record);
+        None where it forks (:meth:`forks`)."""
+        if in_process is not None:
+            return None if in_process else "asked for"
+        if not (sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()):
+            return "no fork on this platform"
+        if torch_forbids_fork(threads):
+            return f"torch is loaded in this process and the fit has {threads} threads"
+        return None
 
     def __init__(self, actor, template_points, camera, how, causal: bool = False, threads: int = 1,
                  in_process: bool | None = None, nice: int = 0):
         from capture.fit.init import PnPSettings
 
-        self.in_process = self.forks(in_process, threads)
         #: why the fit runs in a thread (for the run's record), None in a process
-        self.thread_reason = None if self.in_process else (
-            "asked for" if in_process is not None else
-            f"torch is loaded in this process and the fit has {threads} threads" if torch_forbids_fork(threads)
-            else "no fork on this platform")
+        self.thread_reason = self.thread_reason_for(in_process, threads)
+        self.in_process = self.thread_reason is None
         self.actor = actor
         take = ("take", actor, template_points, camera, how, causal, threads, False, nice)
         taken = _take_prestarted(take) if self.in_process else None
