@@ -17,6 +17,11 @@ Figures (PNG) and a JSON of the numbers go to ``--out`` (default ``benchmarks/re
 
 Usage:
     python benchmarks/bench_fit3d.py [--sequences 4] [--frames 90] [--threads 1] [--quick]
+    python benchmarks/bench_fit3d.py --identity c --actor C [--rigid-jaw]   # a face no setting was chosen on
+
+``--identity b|c`` plays the performance in another ICT identity's face, for an actor learned from that identity's
+shapes (``benchmarks.heldout.write_identity_shapes``); ``--rigid-jaw`` turns the jaw shapes as a jaw does
+(``benchmarks.heldout.RigidJaw``) instead of ICT's linear blends, which bend the teeth.
 """
 
 from __future__ import annotations
@@ -37,8 +42,8 @@ import numpy as np
 import sys  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repo's packages
 from benchmarks.gbs import fit_gbs_sequence
-from benchmarks.heldout import (DEFAULT_ICT, JAW_RANGES, NARROW_FACE_NV, load_ict_identity, make_performance,
-                               sample_actor_split)
+from benchmarks.heldout import (DEFAULT_ICT, IDENTITIES, JAW_RANGES, NARROW_FACE_NV, identity_coeffs,
+                               load_ict_identity, make_performance, sample_actor_split)
 from benchmarks.takes import front_heatmap, peak_rss_mb, save_png
 
 REPO = Path(__file__).resolve().parents[1]
@@ -123,7 +128,12 @@ def save_figures(out: Path, faces: np.ndarray, neutral: np.ndarray, err: dict[st
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--actor", default=str(DEFAULT_ACTOR), help="actor trained on the sample (default: demo actor)")
+    ap.add_argument("--actor", default=str(DEFAULT_ACTOR), help="actor trained on the identity's shapes (default: "
+                    "the demo actor, trained on the sample)")
+    ap.add_argument("--identity", default="sample", choices=IDENTITIES, help="the performer's ICT identity (the "
+                    "actor must be learned from its shapes)")
+    ap.add_argument("--rigid-jaw", action="store_true", help="turn the jaw shapes rigidly, as a jaw does, instead of "
+                    "ICT's linear blends")
     ap.add_argument("--ict", default=str(DEFAULT_ICT), help="ict_facekit_light.npz")
     ap.add_argument("--sequences", type=int, default=4)
     ap.add_argument("--frames", type=int, default=90, help="frames per sequence (30 fps)")
@@ -159,9 +169,10 @@ def main(argv: list[str] | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
 
     training, held_out = sample_actor_split(SAMPLE_JSON)
-    ident = load_ict_identity(Path(args.ict))
+    ident = load_ict_identity(Path(args.ict), identity_coeffs(args.identity, Path(args.ict)))
     perf = make_performance(ident, held_out, args.sequences, args.frames, per_sequence=args.per_sequence,
-                            seed=args.seed, peak=tuple(float(v) for v in args.peak.split(",")))
+                            seed=args.seed, peak=tuple(float(v) for v in args.peak.split(",")),
+                            rigid_jaw=args.rigid_jaw)
     truth = perf.vertices
     print(f"held-out performance: {json.dumps(perf.describe())}")
     print("  jaw: jawOpen / jawLeft / jawRight are TRAINING shapes, used at partial weights only; every other "
@@ -170,8 +181,8 @@ def main(argv: list[str] | None = None) -> dict:
     actor = load_actor(args.actor)
     tv = np.asarray(actor.template.vertices, np.float64)
     if tv.shape != ident.neutral.shape or np.abs(tv - ident.neutral).max() > 1e-3:
-        raise SystemExit(f"actor {args.actor} does not have the sample identity's template; train it on the "
-                         f"bundled sample actor")
+        raise SystemExit(f"actor {args.actor} does not have identity {args.identity}'s template; train it on that "
+                         f"identity's shapes (the sample's: the bundled sample actor)")
     t0 = time.perf_counter()
     fitted, tm = fit_aim(actor, truth, perf.sequence, settings, args.window, args.overlap, args.samples,
                          args.threads)
@@ -189,7 +200,8 @@ def main(argv: list[str] | None = None) -> dict:
     err = {"AIM (fit3d)": vertex_errors(fitted, truth)}
     err.update({k: vertex_errors(v, truth) for k, v in gbs.items()})
     T = len(truth)
-    res = {"performance": perf.describe(), "actor": str(args.actor), "preset": args.preset,
+    res = {"performance": perf.describe(), "identity": args.identity, "rigid_jaw": args.rigid_jaw,
+           "actor": str(args.actor), "preset": args.preset,
            "fit_settings": settings.to_dict(), "window": args.window, "overlap": args.overlap,
            "samples": args.samples, "threads": args.threads, "load_average": os.getloadavg(), "methods": {}}
     print(f"\n{T} frames; load average {os.getloadavg()[0]:.1f} (2 cores shared: times are inflated)")
@@ -222,7 +234,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     if args.control_frames > 0:
         ctrl = make_performance(ident, [n for n in training if n not in JAW_RANGES], 1, args.control_frames,
-                                per_sequence=args.per_sequence, seed=args.seed + 1000)
+                                per_sequence=args.per_sequence, seed=args.seed + 1000, rigid_jaw=args.rigid_jaw)
         cf, _ = fit_aim(actor, ctrl.vertices, ctrl.sequence, settings, args.window, args.overlap, args.samples,
                         args.threads)
         cg = np.stack([f.vertices for f in fit_gbs_sequence(ctrl.vertices, ident.neutral, D, bounded=True)])

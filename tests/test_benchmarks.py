@@ -188,6 +188,18 @@ def test_bench_fit3d_quick(tmp_path):
     assert (tmp_path / "fit3d_error_heatmap.png").stat().st_size > 0 and (tmp_path / "fit3d.json").is_file()
 
 
+@needs_ict
+def test_bench_fit3d_refuses_an_actor_of_another_face(tmp_path):
+    """``--identity c`` plays the performance in identity C's face: the demo actor, learned from the sample's face,
+    would be scored against a neutral it never had, so the benchmark stops before fitting and says which actor to
+    train. The sample's own identity passes the same check (the quick test above)."""
+    from benchmarks.bench_fit3d import main
+
+    with pytest.raises(SystemExit, match="does not have identity c's template; train it on that identity's shapes"):
+        main(["--quick", "--identity", "c", "--out", str(tmp_path)])
+    assert not (tmp_path / "fit3d.json").exists()
+
+
 @pytest.mark.slow
 def test_bench_takes_quick(tmp_path):
     from benchmarks.bench_takes import main
