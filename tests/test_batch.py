@@ -131,6 +131,8 @@ def test_batch_runs_every_take_and_reports_the_broken_one(shoot_dir, first_batch
         with np.load(run / "params.npz", allow_pickle=False) as p:
             assert p["frame_index"].tolist() == list(range(n))
         assert rows[name]["reprojection_mean_px"] == pytest.approx(take_report["error"]["mean"])
+        spans = take_report["unexplained"]["spans"]       # the frames its runs cover, each once
+        assert rows[name]["frames_unexplained"] == len({f for sp in spans for f in range(sp["first"], sp["last"] + 1)})
         assert "done" in (run / "batch_take.log").read_text()
         state = json.loads((run / "batch_take.json").read_text())
         assert state["status"] == "done"
@@ -143,6 +145,7 @@ def test_batch_runs_every_take_and_reports_the_broken_one(shoot_dir, first_batch
     with open(shoot_dir / "out" / "batch_summary.csv", newline="") as fh:
         table = {r["take"]: r for r in csv.DictReader(fh)}
     assert table["a"]["status"] == "done" and int(table["b"]["frames_fitted"]) == 10
+    assert int(table["b"]["frames_unexplained"]) == rows["b"]["frames_unexplained"]
     assert table["broken"]["status"] == "failed" and table["broken"]["error"]
 
 

@@ -386,6 +386,33 @@ def test_bench_outofspan_quick(tmp_path):
     assert (tmp_path / "outofspan_quick.json").is_file()
 
 
+@needs_ict
+def test_bench_unexplained_quick(tmp_path):
+    """The quick run fits one short out-of-span sequence and reads the take's noise back from the residuals: the
+    landmarks carry 0.5 px per axis, and the median residual read as a Gaussian's must find it within 20 %. The
+    fit absorbs a little of the noise, and this sequence's held-out expressions, on in all 12 frames, add residuals
+    over the whole face: 0.58 px here, where the held-out face's 5 x 4 sequences of 90 frames read 0.51-0.66."""
+    from benchmarks.bench_unexplained import main
+
+    res = main(["--quick", "--out", str(tmp_path / "u.json")])
+    assert res["summary"][0]["frames"] == 12 and (tmp_path / "u.json").is_file()
+    assert res["sequences"][0]["noise_read_px"] == pytest.approx(0.5, rel=0.2)
+
+
+def test_bench_unexplained_counts_flagged_and_bad_frames():
+    """``summarise`` on hand-made rows: two sequences of 4 frames, errors and flags chosen so that every count and
+    mean is known."""
+    from benchmarks.bench_unexplained import summarise
+
+    cfg = {"landmarks": 1000, "noise_px": 0.5}
+    rows = [{**cfg, "error_mm": [0.2, 0.9, 0.8, 0.3], "flagged": [False, True, False, True]},
+            {**cfg, "error_mm": [0.1, 0.1, 0.2, 0.2], "flagged": [False] * 4}]
+    (s,) = summarise(rows, bad_mm=0.5)
+    assert (s["frames"], s["flagged"], s["bad_frames"], s["bad_flagged"]) == (8, 2, 2, 1)
+    assert s["error_flagged_mm"] == pytest.approx(0.6) and s["error_unflagged_mm"] == pytest.approx(1.6 / 6)
+    assert (s["sequences_flagged"], s["sequences_over_bad_mm"], s["sequences_over_bad_mm_flagged"]) == (1, 1, 1)
+
+
 def test_the_pose_free_error_is_the_least_mean_distance_over_rigid_motions():
     """``pose_free_error`` against scipy minimising the same mean distance over a rotation vector and a
     translation (Nelder-Mead, then Powell), on a face-sized cloud moved rigidly, with small errors everywhere and

@@ -360,7 +360,8 @@ def test_the_stream_gives_the_report_its_series_and_rows_as_it_exports(take, tmp
     folder, the rows' errors and the track's detections (every field equal: the same errors and confidence
     statistics, summarised frame by frame as they came). The report's rows (errors, head depths) are those
     that summarise_fit and check_head_depths read from the fit folder, and the worst frames' fits that the
-    thumbnails are drawn with those that fits_at reads."""
+    thumbnails are drawn with those that fits_at reads. Its landmark residuals' section (the runs of frames the
+    actor does not explain) is the one summarise_fit's residuals give."""
     import dataclasses
 
     import capture.export.report_figures as rf
@@ -375,6 +376,9 @@ def test_the_stream_gives_the_report_its_series_and_rows_as_it_exports(take, tmp
     import capture.export.report_html as rh
     from capture.run.stages import LANDMARKS, fits_at, iter_fits
     from capture.run.take import THUMBNAIL_FIELDS, Detection, skip_reasons, summarise_fit
+    from capture.detector import embedded_points, read_embedding
+    from capture.fit.unexplained import ResidualTally
+    from capture.run.report import unexplained_section
 
     root, actor, take_dir = take
     events = []
@@ -430,6 +434,15 @@ def test_the_stream_gives_the_report_its_series_and_rows_as_it_exports(take, tmp
             np.testing.assert_array_equal(a, b, err_msg=f.name)
         else:
             assert a == b, f.name
+    # the residuals' tally that the stream kept gives the section that the fit folder gives
+    a = load_actor(str(actor))
+    points = embedded_points(read_embedding(a.path, report["detector"]["name"], a.template_arrays,
+                                            track.points.shape[1]), a.template_arrays)
+    tally = ResidualTally.on_template(a.template, points)
+    summarise_fit(fit_dir, track, tally)
+    assert report["unexplained"] == json.loads(json.dumps(unexplained_section(tally, report["video"]["fps"])[0]))
+    assert report["unexplained"]["noise_px"] > 0
+    assert sum(report["unexplained"]["regions"].values()) == track.points.shape[1]
 
 
 def test_a_segment_detected_piece_by_piece_gives_the_same_landmarks(take, full_run, tmp_path, monkeypatch):

@@ -27,7 +27,8 @@ REPORT_HTML = "batch_report.html"
 #: Take statuses: ran and finished / skipped because done with the same settings / failed / stopped.
 STATUSES = ("done", "already done", "failed", "interrupted", "pending")
 CSV_FIELDS = ("take", "status", "frames_requested", "frames_fitted", "frames_skipped", "reprojection_mean_px",
-              "reprojection_median_px", "reprojection_max_px", "seconds", "cpu_seconds", "attempts", "host", "out", "error")
+              "reprojection_median_px", "reprojection_max_px", "frames_unexplained", "seconds", "cpu_seconds",
+              "attempts", "host", "out", "error")
 
 
 def take_row(name: str, out: Path, result: dict | None, status: str, attempts: int = 0) -> dict:
@@ -37,7 +38,8 @@ def take_row(name: str, out: Path, result: dict | None, status: str, attempts: i
             "frames_fitted": r.get("frames_fitted"), "frames_skipped": r.get("frames_skipped"),
             "reprojection_mean_px": r.get("reprojection_mean_px"),
             "reprojection_median_px": r.get("reprojection_median_px"),
-            "reprojection_max_px": r.get("reprojection_max_px"), "seconds": r.get("seconds"),
+            "reprojection_max_px": r.get("reprojection_max_px"), "frames_unexplained": r.get("frames_unexplained"),
+            "seconds": r.get("seconds"),
             "cpu_seconds": r.get("cpu_seconds"),
             "attempts": attempts, "host": r.get("node") or r.get("host"), "out": str(out), "error": r.get("error")}
 
@@ -100,8 +102,8 @@ def print_summary_table(report: dict, console=None) -> None:
 
     console = console or Console()
     t = Table(title=f"capture batch: {report['name']}", title_justify="left")
-    for col, just in (("take", "left"), ("frames", "right"), ("reproj. mean px", "right"), ("time", "right"),
-                      ("status", "left")):
+    for col, just in (("take", "left"), ("frames", "right"), ("reproj. mean px", "right"), ("unexplained", "right"),
+                      ("time", "right"), ("status", "left")):
         t.add_column(col, justify=just)
     style = {"done": "green", "already done": "cyan", "failed": "bold red", "interrupted": "yellow"}
     for r in report["takes"]:
@@ -109,7 +111,9 @@ def print_summary_table(report: dict, console=None) -> None:
         status = r["status"] + (f" ({r['attempts']} attempts)" if (r.get("attempts") or 0) > 1 else "")
         if r.get("error"):
             status += f": {r['error']}"
-        t.add_row(r["take"], _frames(r), "-" if err is None else f"{err:.2f}", _seconds(r.get("seconds")),
+        unx = r.get("frames_unexplained")
+        t.add_row(r["take"], _frames(r), "-" if err is None else f"{err:.2f}", "-" if unx is None else str(unx),
+                  _seconds(r.get("seconds")),
                   f"[{style.get(r['status'], '')}]{status}[/]" if r["status"] in style else status)
     console.print(t)
     tot = report["totals"]

@@ -98,10 +98,13 @@ def write_take_state(cfg: RunConfig, name: str, key: str, status: str, result: d
 
 def result_from_report(report: dict) -> dict:
     """The summary-table fields of a ``capture run`` report."""
+    from capture.run.report import unexplained_frames
+
     fr, err = report["frames"], report["error"]
     return {"frames_requested": fr["requested"], "frames_fitted": fr["fitted"], "frames_skipped": fr["skipped"],
             "reprojection_mean_px": err.get("mean"), "reprojection_median_px": err.get("median"),
             "reprojection_max_px": err.get("max"), "worst_frame": err.get("worst_frame"),
+            "frames_unexplained": unexplained_frames(report.get("unexplained")),
             "camera_is_default": bool(report.get("camera", {}).get("is_default")),
             "stages": {s["stage"]: s["status"] for s in report.get("stages", [])}}
 

@@ -358,19 +358,30 @@ class FrameRenderer:
         return out
 
 
-def confident_rms(fit, detection) -> float | None:
-    """RMS (px) of fitted minus detected landmarks with confidence >= 0.5 (all when none is given)."""
+def confident_residuals(fit, detection) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(lengths (L,), used (L,) bool)``: each landmark's residual length (fitted minus detected, px) and whether it
+    counts (finite, confidence >= 0.5 where confidences are given); None for a frame without a face or a fit."""
     if detection is None or not detection.face_found:
         return None
     lf = getattr(fit, "landmarks_fit", None)
     pts = np.asarray(detection.points, np.float64).reshape(-1, 2)
     if lf is None or np.shape(lf) != pts.shape or getattr(fit, "status", "fitted") == "skipped":
         return None
-    ok = np.isfinite(pts).all(1) & np.isfinite(np.asarray(lf, np.float64)).all(1)
+    lf = np.asarray(lf, np.float64)
+    ok = np.isfinite(pts).all(1) & np.isfinite(lf).all(1)
     conf = getattr(detection, "confidence", None)
     if conf is not None:
         ok &= np.nan_to_num(np.asarray(conf, np.float64), nan=0.0) >= CONFIDENT
-    if not ok.any():
+    return np.where(ok, np.linalg.norm(np.where(ok[:, None], lf - pts, 0.0), axis=1), np.nan), ok
+
+
+def residual_rms(residuals: tuple[np.ndarray, np.ndarray] | None) -> float | None:
+    """RMS (px) of :func:`confident_residuals`' used landmarks; None where there are none."""
+    if residuals is None or not residuals[1].any():
         return None
-    d = np.asarray(lf, np.float64)[ok] - pts[ok]
-    return float(np.sqrt((d ** 2).sum(1).mean()))
+    return float(np.sqrt(np.mean(residuals[0][residuals[1]] ** 2)))
+
+
+def confident_rms(fit, detection) -> float | None:
+    """RMS (px) of fitted minus detected landmarks with confidence >= 0.5 (all when none is given)."""
+    return residual_rms(confident_residuals(fit, detection))

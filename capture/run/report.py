@@ -120,6 +120,52 @@ def summary_lines(report: dict) -> list[str]:
     return lines
 
 
+def unexplained_section(tally, fps: float, max_notes: int = 3) -> tuple[dict, list[str]]:
+    """The report's ``unexplained`` section and its notes, from a :class:`capture.fit.unexplained.ResidualTally`
+    of the take's fitted frames: the landmark noise it read and the runs of frames where a face region's landmarks
+    are fitted well above it (the first ``max_notes`` of them also as notes, with the reading)."""
+    from capture.fit.unexplained import MIN_LANDMARKS, MIN_SIGMA_PX, REGIONS
+
+    if tally is None:
+        return {"noise_px": None, "spans": []}, []
+    rule = {"ratio": 1.5, "min_frames": 5, "max_gap": 2, "p_false": 1e-3}
+    sigma, spans = tally.spans(**rule)
+    section = {"noise_px": round(sigma, 4) if np.isfinite(sigma) else None,
+               "regions": {name: int((tally.labels == k).sum()) for k, name in enumerate(REGIONS)},
+               "rule": {**rule, "min_landmarks": MIN_LANDMARKS, "min_noise_px": MIN_SIGMA_PX,
+                        "meaning": "a region's RMS residual over ratio x the noise's (sqrt(2) max(noise_px, "
+                                   "min_noise_px)) and over "
+                                   "what its landmark count reaches by chance with probability p_false, for "
+                                   "min_frames frames or more (gaps of max_gap frames joined)"},
+               "spans": [{**sp.to_dict(), "first_s": round(sp.first / fps, 3), "last_s": round(sp.last / fps, 3)}
+                         for sp in spans]}
+    if not spans:
+        return section, []
+    named = {"mouth": "the mouth", "eyes": "the eyes", "face": "the rest of the face"}
+    regions = [named[r] for r in sorted({sp.region for sp in spans}, key=REGIONS.index)]
+    where = regions[0] if len(regions) == 1 else ", ".join(regions[:-1]) + " and " + regions[-1]
+    notes = [f"the actor does not explain the landmarks of {where} in {len(spans)} run(s) of frames "
+             f"({unexplained_frames(section)} frames): there the fit stays above the take's landmark noise "
+             f"({max(sigma, MIN_SIGMA_PX):.2f} px per axis). Either the performance goes beyond the actor's "
+             f"training shapes, and the mesh can be about a millimetre off there, mostly in depth (add a scan of "
+             f"that expression to the actor), or the detector erred there (the overlay shows which); report.json "
+             f"'unexplained'"]
+    for sp in spans[:max_notes]:
+        notes.append(f"  {sp.region}, frames {sp.first}-{sp.last} ({sp.first / fps:.1f}-{sp.last / fps:.1f} s): "
+                     f"{sp.mean_ratio:.1f}x the noise, at most {sp.peak_ratio:.1f}x (frame {sp.peak_frame})")
+    if len(spans) > max_notes:
+        notes.append(f"  ... {len(spans) - max_notes} more run(s) in report.json")
+    return section, notes
+
+
+def unexplained_frames(section: dict | None) -> int | None:
+    """How many frames the runs of a report's ``unexplained`` section cover (a frame in runs of two regions
+    once); None for a report without the section (made before it existed)."""
+    if not section:
+        return None
+    return len({f for sp in section.get("spans", []) for f in range(int(sp["first"]), int(sp["last"]) + 1)})
+
+
 def print_summary(report: dict) -> None:
     from rich.console import Console
     from rich.panel import Panel

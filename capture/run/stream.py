@@ -350,6 +350,7 @@ class StreamResult:
     frames: list = field(default_factory=list)     # capture.run.report.FrameSummary per exported fit, in order
     worst_fits: dict = field(default_factory=dict)   # frame -> FrameFit of the worst frames (report.html)
     head_depths: dict = field(default_factory=dict)  # frame -> head_t z (mm) of the fitted frames
+    residuals: Any = None      # capture.fit.unexplained.ResidualTally of the exported fits
 
 
 def stream_take(inputs, out: Path, export_context, formats, export_key: Callable[[Any], dict],
@@ -371,9 +372,10 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     from capture.detector.pipeline import TrackBuilder, _segment_path, _write_segment, stack_frames
     from capture.detector.runtime import Lane, TrackState
     from capture.export import EXPORTERS, open_exporters
-    from capture.export.overlay_draw import confident_rms
+    from capture.export.overlay_draw import confident_residuals, residual_rms
     from capture.export.report_html import SeriesCollector, WorstFrameImages
     from capture.fit.process import FitStopped, FitWorker
+    from capture.fit.unexplained import ResidualTally
     from capture.run.checks import head_depth
     from capture.io.video import FramePool, VideoReader
     from capture.run.stages import DONE_JSON, EXPORT_JSON, FIT_CHUNK, LANDMARKS, fit_dir_for, fit_key, windowed_fit
@@ -570,6 +572,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     worst, worst_fits = WorstFrameImages(), WorstFrameImages()
     summaries: list[FrameSummary] = []
     depths: dict[int, float] = {}
+    tally = ResidualTally.on_template(inputs.actor.template, inputs.landmark_points)
 
     # export, in this thread. The writers are opened (pxr, av imported) before the other stages start:
     # a C extension loading in one thread while another runs torch or FFmpeg can deadlock.
@@ -613,7 +616,10 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
                     writers.write(ff, image, detection)
                     series.add(ff, detection)    # the report's series, while the fit works on (not read back)
                     face = image if crops is None else crops.take(int(ff.frame))
-                    error = confident_rms(ff, detection)
+                    residuals = confident_residuals(ff, detection)
+                    error = residual_rms(residuals)
+                    if residuals is not None:
+                        tally.add(int(ff.frame), *residuals)
                     # what the report reads of each frame (capture.run.take.summarise_fit, check_head_depths),
                     # so that it does not read the fit back
                     status = str(getattr(ff, "status", "fitted"))
@@ -690,7 +696,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
          "files": len(rel), "streamed": True},
     ]
     return StreamResult(track, final, log, series, worst.images, frames=summaries, head_depths=depths,
-                        worst_fits=worst_fits.images)
+                        worst_fits=worst_fits.images, residuals=tally)
 
 
 def _take_landmarks(unexported: deque, frame: int):

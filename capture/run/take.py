@@ -22,14 +22,15 @@ import contextlib
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from capture.io.errors import CaptureError, Interrupted
 from capture.io.machine import machine
 from capture.run.inputs import RunConfig, resolve_inputs
-from capture.run.report import FrameSummary, error_stats, finite_or_none, frame_table, versions, write_report
+from capture.fit.unexplained import ResidualTally
+from capture.run.report import (FrameSummary, error_stats, finite_or_none, frame_table, unexplained_section, versions,
+                                write_report)
 from capture.run.stages import LANDMARKS, detect_stage, export_stage, fit_frames, fit_stage, iter_fits
 from capture.run.store import digest, open_run_dir, write_run_json
 from capture.io.signals import sigterm_as_interrupt
@@ -65,30 +66,36 @@ CONFIDENT = 0.5
 THUMBNAIL_FIELDS = ("vertices", "landmarks_fit", "status", "reprojection_rms_px", "error3d_mm")
 
 
-def confident_rms(f: Any, track, row: dict[int, int]) -> float | None:
-    """RMS (px) between the fitted and the detected landmarks whose confidence is >= CONFIDENT.
-
-    The detector's low-confidence landmarks (occluded, off the face) can be far off; they carry little
-    weight in the fit but would dominate a plain RMS (kept as ``reprojection_rms_all_px``). The rule is
-    :func:`capture.export.overlay_draw.confident_rms`'s, which the stream also ranks the report's worst
-    frames by.
-    """
-    from capture.export.overlay_draw import confident_rms as rms
-
-    j = row.get(int(f.frame))
+def track_detection(track, row: dict[int, int], frame: int) -> Detection | None:
+    """The detection of video frame ``frame`` in ``track`` (``row``: frame -> the track's row), None if not there."""
+    j = row.get(int(frame))
     if j is None:
         return None
-    return rms(f, Detection(track.points[j], None if track.confidence is None else track.confidence[j],
-                            bool(track.face_found[j])))
+    return Detection(track.points[j], None if track.confidence is None else track.confidence[j],
+                     bool(track.face_found[j]))
 
 
-def summarise_fit(fit_dir: Path, track) -> list[FrameSummary]:
+def summarise_fit(fit_dir: Path, track, tally=None) -> list[FrameSummary]:
     """The report's summary of every frame of a finished fit, read back from ``fit_dir`` (a streamed run
-    makes the same as it exports: :attr:`capture.run.stream.StreamResult.frames`)."""
+    makes the same as it exports: :attr:`capture.run.stream.StreamResult.frames`).
+
+    A frame's error is the RMS (px) between its fitted and detected landmarks whose confidence is >= CONFIDENT:
+    the detector's low-confidence landmarks (occluded, off the face) can be far off; they carry little weight in
+    the fit but would dominate a plain RMS (kept as ``reprojection_rms_all_px``). The rule is
+    :func:`capture.export.overlay_draw.confident_rms`'s, which the stream also ranks the report's worst frames by.
+    ``tally`` (a :class:`capture.fit.unexplained.ResidualTally`) is given each frame's residuals, as the stream does.
+    """
+    from capture.export.overlay_draw import confident_residuals, residual_rms
+
     row = {int(i): j for j, i in enumerate(track.frame_index)}
-    return [FrameSummary(int(f.frame), str(f.status), confident_rms(f, track, row),
-                         finite_or_none(getattr(f, "reprojection_rms_px", None)))
-            for f in iter_fits(fit_dir, ("status", "landmarks_fit", "reprojection_rms_px"))]
+    out = []
+    for f in iter_fits(fit_dir, ("status", "landmarks_fit", "reprojection_rms_px")):
+        residuals = confident_residuals(f, track_detection(track, row, int(f.frame)))
+        if residuals is not None and tally is not None:
+            tally.add(int(f.frame), *residuals)
+        out.append(FrameSummary(int(f.frame), str(f.status), residual_rms(residuals),
+                                finite_or_none(getattr(f, "reprojection_rms_px", None))))
+    return out
 
 
 def check_complete(requested: list[int], fitted: list[int]) -> None:
@@ -173,6 +180,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
     worst_images = None        # and the images of its worst frames
     early: dict = {}           # and its figures, submitted while the stream's files were written
     summaries = depths = worst_fits = None   # and what the report reads of each frame, and the worst ones' fits
+    tally = None               # and the landmark residuals' tally (capture.fit.unexplained)
 
     def on_exported(series, frames) -> None:
         if figure_process is not None:     # the errors of the report's rows, which are made of the same frames
@@ -192,7 +200,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
                                   on_detected=None if figure_process is None else figure_process.prepare)
                 log[:] = res.log
                 track, fit_dir, collector, worst_images = res.track, res.fit_dir, res.series, res.thumbnail_images
-                summaries, depths, worst_fits = res.frames, res.head_depths, res.worst_fits
+                summaries, depths, worst_fits, tally = res.frames, res.head_depths, res.worst_fits, res.residuals
                 check_reasons = check_detections(track, det.name)
                 frames = fit_frames(fit_dir)
                 dets = detections_of(track)
@@ -231,7 +239,11 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
 
     requested = list(range(*inputs.frame_range)) if cfg.frames is not None else [int(i) for i in track.frame_index]
     reasons = {**skip_reasons(track, det.name), **check_reasons}
-    fits = summarise_fit(fit_dir, track) if summaries is None else summaries
+    if summaries is None:
+        tally = ResidualTally.on_template(inputs.actor.template, inputs.landmark_points)
+        fits = summarise_fit(fit_dir, track, tally)
+    else:
+        fits = summaries
     errors = [f.error for f in fits]
     rows, skipped = frame_table(fits, "reprojection_rms_px", errors, reasons)
     for r, f in zip(rows, fits):
@@ -251,7 +263,9 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
         "error": {"kind": "reprojection error", "unit": "px", "landmarks": f"confidence >= {CONFIDENT}",
                   **error_stats(errors),
                   "all_landmarks": error_stats([r["reprojection_rms_all_px"] for r in rows])},
-        "skipped_frames": skipped, "per_frame": rows, "notes": inputs.notes})
+        "skipped_frames": skipped, "per_frame": rows, "notes": list(inputs.notes)})
+    report["unexplained"], unexplained_notes = unexplained_section(tally, info.fps)
+    report["notes"] += unexplained_notes
     implausible = check_head_depths(fit_dir, rows, depths)
     finish_report(report, rows, "reprojection_rms_px", out)
     html_report(out, report, fit_dir, inputs.actor, rows, "reprojection_rms_px", "px", info.fps, detections=dets,
