@@ -572,7 +572,7 @@ def stream_take(inputs, out: Path, export_context, formats, export_key: Callable
     worst, worst_fits = WorstFrameImages(), WorstFrameImages()
     summaries: list[FrameSummary] = []
     depths: dict[int, float] = {}
-    tally = ResidualTally.on_template(inputs.actor.template, inputs.landmark_points)
+    tally = ResidualTally.on_template(inputs.actor.template_arrays, inputs.landmark_points)
 
     # export, in this thread. The writers are opened (pxr, av imported) before the other stages start:
     # a C extension loading in one thread while another runs torch or FFmpeg can deadlock.

@@ -240,7 +240,7 @@ def _run_in(folder, cfg: RunConfig, inputs, label: str, settings: dict, fingerpr
     requested = list(range(*inputs.frame_range)) if cfg.frames is not None else [int(i) for i in track.frame_index]
     reasons = {**skip_reasons(track, det.name), **check_reasons}
     if summaries is None:
-        tally = ResidualTally.on_template(inputs.actor.template, inputs.landmark_points)
+        tally = ResidualTally.on_template(inputs.actor.template_arrays, inputs.landmark_points)
         fits = summarise_fit(fit_dir, track, tally)
     else:
         fits = summaries
