@@ -39,6 +39,9 @@ MIN_LANDMARKS = 5
 #: The least landmark noise (px per axis) residuals are judged against: a detector's landmarks are not better
 #: than that, and excess residuals below it are sub-pixel.
 MIN_SIGMA_PX = 0.25
+#: The rule of :meth:`ResidualTally.spans` that ``capture run`` reports with (BENCHMARKS.md, "Frames the actor does
+#: not explain", measures it): RMS over 1.5x the noise's, at least 5 frames, gaps of 2 frames bridged, 1e-3 chance.
+RATIO, MIN_FRAMES, MAX_GAP, P_FALSE = 1.5, 5, 2, 1e-3
 
 
 def landmark_regions(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, mouth_mm: float = MOUTH_MM,
@@ -186,8 +189,9 @@ class ResidualTally:
             ratio = np.sqrt(sumsq / count) / (np.sqrt(2.0) * s)
         return frames[order], ratio, count.astype(np.int64)
 
-    def spans(self, ratio: float = 1.5, min_frames: int = 5, max_gap: int = 2, p_false: float = 1e-3,
-              sigma: float | None = None, min_sigma_px: float = MIN_SIGMA_PX) -> tuple[float, list[UnexplainedSpan]]:
+    def spans(self, ratio: float = RATIO, min_frames: int = MIN_FRAMES, max_gap: int = MAX_GAP,
+              p_false: float = P_FALSE, sigma: float | None = None, min_sigma_px: float = MIN_SIGMA_PX
+              ) -> tuple[float, list[UnexplainedSpan]]:
         """``(sigma, spans)``: the take's noise (px per axis; or the given one) and the runs of frames where a region
         is unexplained.
 

@@ -124,11 +124,11 @@ def unexplained_section(tally, fps: float, max_notes: int = 3) -> tuple[dict, li
     """The report's ``unexplained`` section and its notes, from a :class:`capture.fit.unexplained.ResidualTally`
     of the take's fitted frames: the landmark noise it read and the runs of frames where a face region's landmarks
     are fitted well above it (the first ``max_notes`` of them also as notes, with the reading)."""
-    from capture.fit.unexplained import MIN_LANDMARKS, MIN_SIGMA_PX, REGIONS
+    from capture.fit.unexplained import MAX_GAP, MIN_FRAMES, MIN_LANDMARKS, MIN_SIGMA_PX, P_FALSE, RATIO, REGIONS
 
     if tally is None:
         return {"noise_px": None, "spans": []}, []
-    rule = {"ratio": 1.5, "min_frames": 5, "max_gap": 2, "p_false": 1e-3}
+    rule = {"ratio": RATIO, "min_frames": MIN_FRAMES, "max_gap": MAX_GAP, "p_false": P_FALSE}
     sigma, spans = tally.spans(**rule)
     section = {"noise_px": round(sigma, 4) if np.isfinite(sigma) else None,
                "regions": {name: int((tally.labels == k).sum()) for k, name in enumerate(REGIONS)},
