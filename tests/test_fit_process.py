@@ -337,7 +337,8 @@ def test_a_stop_event_ends_the_results_and_close_ends_the_process(take):
 def test_capture_run_loads_neither_torch_nor_trimesh_outside_its_fit_process(take, tmp_path):
     """The parent of ``capture run`` checks the actor (safetensors' numpy reader, plyfile), decodes, detects,
     exports and reports; only the forked fit process builds the networks. Were torch imported in the
-    parent, every run would start 2 s later. The run must still be whole: meshes, report and rig."""
+    parent, every run would start 2 s later. Nor may a BLAS library load there after the run limited the pools to
+    one thread (scipy's own would). The run must still be whole: meshes, report and rig."""
     import base64
     import json
     import os
@@ -360,6 +361,8 @@ def test_capture_run_loads_neither_torch_nor_trimesh_outside_its_fit_process(tak
         "from capture.cli import main\n"
         "code = main(sys.argv[1:])\n"
         "print('PARENT_IMPORTED=' + ','.join(seen))\n"
+        "from threadpoolctl import threadpool_info\n"
+        "print('BLAS_AT_END=' + repr([i['num_threads'] for i in threadpool_info() if i['user_api'] == 'blas']))\n"
         "sys.exit(code)\n")
     root = Path(__file__).resolve().parents[1]
     r = subprocess.run([sys.executable, "-c", code, "run", str(take_dir / "take.mp4"), "--actor", str(actor.path),
@@ -369,6 +372,10 @@ def test_capture_run_loads_neither_torch_nor_trimesh_outside_its_fit_process(tak
     assert r.returncode == 0, r.stderr[-2000:]
     assert "PARENT_IMPORTED=\n" in r.stdout, r.stdout
     report = json.loads((out / "report.json").read_text())
+    # no BLAS library loaded after the run limited its pools (scipy brings its own): each would spin its own
+    # threads, and a rerun in the same process would record changed settings
+    blas = eval(r.stdout.split("BLAS_AT_END=")[1].splitlines()[0])
+    assert blas == [1] * len(report["settings"]["thread_pools"]["blas"]), (blas, report["settings"]["thread_pools"])
     fit = next(s for s in report["stages"] if s["stage"] == "fit")
     assert fit["fit_process"] is True and report["frames"]["fitted"] == N_FRAMES
     assert fit["fit_process_prestarted"] is True      # forked first, it imported torch while the run started
