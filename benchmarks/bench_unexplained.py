@@ -40,14 +40,25 @@ DEFAULT_ACTOR = REPO / "capture" / "data" / "demo_actor"
 SAMPLE_JSON = REPO / "capture" / "data" / "sample_actor" / "sample.json"
 
 
-def frame_residuals(fits, take, idx) -> tuple[np.ndarray, np.ndarray]:
-    """``(lengths (T, L), used (T, L))`` of the fitted frames, as ``capture run`` takes them
-    (:func:`capture.export.overlay_draw.confident_residuals`, every landmark confident)."""
+def fit_and_tally(actor, take, idx: np.ndarray):
+    """The 2D default fit (``capture run``'s, windows 30 / overlap 6, 1 thread) of frames ``idx`` of a landmark
+    take, each fitted frame's residuals tallied as ``capture run`` tallies them
+    (:func:`capture.export.overlay_draw.confident_residuals`, every seen landmark confident; frames numbered 0..),
+    and the frames' mean 3D errors against the truth (mm). Returns ``(tally, errors (T,))``."""
     from capture.export.overlay_draw import confident_residuals
+    from capture.fit.take import TakeLandmarks, WindowedFit, fit_take
+    from capture.fit.unexplained import ResidualTally
     from capture.run.take import Detection
+    from models.fit import FIT_PRESETS
 
-    out = [confident_residuals(f, Detection(take.points2d[j], None, True)) for f, j in zip(fits, idx)]
-    return np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
+    fits = list(fit_take(actor, TakeLandmarks(take.points2d[idx], take.weights[idx], None, take.template_points),
+                         take.camera, WindowedFit(FIT_PRESETS["default"], 30, 6, threads=1)))
+    tally = ResidualTally.on_template(actor.template, take.template_points)
+    for t, (f, j) in enumerate(zip(fits, idx)):
+        lengths, used = confident_residuals(f, Detection(take.points2d[j], None, True))
+        tally.add(t, lengths, used & (take.weights[j] > 0))
+    err = np.array([np.linalg.norm(f.vertices - take.truth[j], axis=1).mean() for f, j in zip(fits, idx)])
+    return tally, err
 
 
 def flag_frames(tally, frames: np.ndarray) -> tuple[np.ndarray, list]:
@@ -62,26 +73,14 @@ def flag_frames(tally, frames: np.ndarray) -> tuple[np.ndarray, list]:
 
 
 def run_seed(args, seed: int, actor, ident, pool, configs) -> list[dict]:
-    from capture.fit.take import TakeLandmarks, WindowedFit, fit_take
-    from capture.fit.unexplained import ResidualTally
-    from models.fit import FIT_PRESETS
-
     perf = make_performance(ident, pool, args.sequences, args.frames, seed=seed, rigid_jaw=args.rigid_jaw)
     rows = []
     for n_lm, noise in configs:
         take = landmark_take(perf.vertices, actor.template, n_lm, noise, seed, noise=args.noise)
         for s in range(args.sequences):
             idx = np.flatnonzero(perf.sequence == s)
-            fits = list(fit_take(actor, TakeLandmarks(take.points2d[idx], take.weights[idx], None,
-                                                      take.template_points),
-                                 take.camera, WindowedFit(FIT_PRESETS["default"], 30, 6, threads=1)))
-            err = np.array([np.linalg.norm(f.vertices - take.truth[j], axis=1).mean() for f, j in zip(fits, idx)])
-            lengths, used = frame_residuals(fits, take, idx)
-            used &= take.weights[idx] > 0
-            tally = ResidualTally.on_template(actor.template, take.template_points)
+            tally, err = fit_and_tally(actor, take, idx)
             frames = np.arange(len(idx))
-            for t in frames:
-                tally.add(int(t), lengths[t], used[t])
             flagged, spans = flag_frames(tally, frames)
             rows.append({"seed": seed, "landmarks": n_lm, "noise_px": noise, "sequence": s,
                          "noise_read_px": tally.sigma, "error_mm": err.tolist(), "flagged": flagged.tolist(),

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from benchmarks.heldout import DEFAULT_ICT
 from capture.fit.unexplained import (EYES, FACE, MIN_LANDMARKS, MOUTH, REGIONS, ResidualTally, chance_ratio,
                                      landmark_regions, unexplained_spans)
 
@@ -189,14 +190,11 @@ def _fit_residual_tally(expression: str):
     """The demo actor's 2D default fit of 60 frames of the sample's face: ``expression`` rises to 0.8 and back
     over frames 15-45, the head still; 1,000 landmarks at 0.5 px. The tally of its residuals and the frames'
     mean 3D errors."""
+    from benchmarks.bench_unexplained import fit_and_tally
     from benchmarks.heldout import load_ict_identity
     from benchmarks.outofspan import landmark_take
     from capture.actor.package import load_actor
     from capture.demo import bundled_demo_actor
-    from capture.export.overlay_draw import confident_residuals
-    from capture.fit.take import TakeLandmarks, WindowedFit, fit_take
-    from capture.run.take import Detection
-    from models.fit import FIT_PRESETS
 
     ident = load_ict_identity()
     w = np.clip(np.sin(np.pi * (np.arange(60) - 15) / 30.0), 0.0, None) * 0.8
@@ -204,18 +202,12 @@ def _fit_residual_tally(expression: str):
     verts = ident.neutral[None] + w[:, None, None] * ident.deltas[expression][None]
     actor = load_actor(bundled_demo_actor())
     take = landmark_take(verts, actor.template, 1000, 0.5, seed=7)
-    fits = list(fit_take(actor, TakeLandmarks(take.points2d, take.weights, None, take.template_points), take.camera,
-                         WindowedFit(FIT_PRESETS["default"], 30, 6, threads=1)))
-    tally = ResidualTally.on_template(actor.template, take.template_points)
-    for t, f in enumerate(fits):
-        lengths, used = confident_residuals(f, Detection(take.points2d[t], None, True))
-        tally.add(t, lengths, used & (take.weights[t] > 0))
-    err = np.array([np.linalg.norm(f.vertices - take.truth[t], axis=1).mean() for t, f in enumerate(fits)])
+    tally, err = fit_and_tally(actor, take, np.arange(60))
     return tally, err
 
 
-@pytest.mark.skipif(not __import__("benchmarks.heldout").heldout.DEFAULT_ICT.is_file(),
-                    reason="ICT FaceKit arrays not found (set CAPTURE_SHARED_ASSETS)")
+@pytest.mark.skipif(not DEFAULT_ICT.is_file(), reason=f"ICT FaceKit arrays not at {DEFAULT_ICT} (set "
+                    "CAPTURE_SHARED_ASSETS)")
 def test_the_fit_of_an_expression_the_actor_never_saw_is_found_at_the_mouth():
     """The claim behind the report's notes, on the real fit: mouthLeft (lips pulled sideways; none of the demo
     actor's 19 shapes does that) is fitted with the mouth's landmarks well above the noise while it is on, and the
